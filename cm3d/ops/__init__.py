@@ -1,0 +1,1 @@
+"""Jittable primitives: SE(3), camera geometry and (in later modules) clustering, voxels, neighbours."""

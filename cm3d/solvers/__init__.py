@@ -1,0 +1,1 @@
+"""Solvers: ICP, Levenberg-Marquardt factor graph, alignment (pure JAX)."""

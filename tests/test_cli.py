@@ -1,0 +1,79 @@
+"""The command line: generate, eval (against evo's reference numbers), demo, errors, light import."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from cm3d import cli
+from cm3d.data import io
+
+
+def test_eval_json_matches_evo_reference(shared_data, capsys):
+    d = shared_data / "evo_tum_traj"
+    rc = cli.main(["eval", "--gt", str(d / "fr2_desk_groundtruth.txt"), "--est", str(d / "fr2_desk_ORB.txt"), "--json"])
+    assert rc == 0
+    m = json.loads(capsys.readouterr().out)
+    assert set(m) == {"ate", "ate_se3", "rpe_trans", "rpe_rot", "pairs"}
+    # figures from evo 1.38.1 (../shared/data/README.md)
+    np.testing.assert_allclose([m["ate"], m["ate_se3"], m["rpe_trans"], m["rpe_rot"]],
+                               [0.006123, 0.008119, 0.003485, 0.280519], atol=1e-6)
+    assert m["pairs"] == 2174
+
+
+def test_eval_table_and_bad_file(tmp_path, shared_data, capsys):
+    d = shared_data / "evo_tum_traj"
+    assert cli.main(["eval", "--gt", str(d / "freiburg1_xyz-groundtruth.txt"),
+                     "--est", str(d / "freiburg1_xyz-rgbdslam.txt")]) == 0
+    assert "ATE (Sim3) 0.013389" in capsys.readouterr().out
+    bad = tmp_path / "bad.txt"
+    bad.write_text("0 1 2 3 0 0 0\n")
+    assert cli.main(["eval", "--gt", str(bad), "--est", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "bad.txt:1:" in err and "expected 8 values" in err
+
+
+def test_generate_writes_loadable_sequences_and_trajectories(tmp_path, capsys):
+    rc = cli.main(["generate", "--out", str(tmp_path), "--visits", "2", "--frames", "3",
+                   "--height", "48", "--width", "64", "--level", "slight"])
+    assert rc == 0
+    seqs = sorted(tmp_path.glob("*.npz"))
+    assert len(seqs) == 2
+    seq = io.load_sequence(seqs[1])
+    assert seq.images.shape == (3, 48, 64, 3) and seq.gt is not None and seq.meta["visit"] == 1
+    ts, c2w = io.read_tum(seqs[1].with_suffix(".gt.txt"))
+    np.testing.assert_allclose(c2w, seq.gt.cam_to_world, atol=1e-8)
+    # the written prior trajectory evaluates against the written ground truth
+    assert cli.main(["eval", "--gt", str(seqs[1].with_suffix(".gt.txt")),
+                     "--est", str(seqs[1].with_suffix(".prior.txt")), "--json"]) == 0
+
+
+def test_demo_quick_prints_table_and_json(tmp_path, capsys):
+    out = tmp_path / "demo.json"
+    assert cli.main(["demo", "--quick", "--visits", "1", "--frames", "4", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "moderate" in text and "ate_se3" in text
+    rows = json.loads(out.read_text())
+    assert [r["level"] for r in rows] == ["none", "slight", "moderate", "severe"]
+    assert rows[0]["ate"] < 1e-6 < rows[-1]["ate"]
+
+
+def test_import_cm3d_is_light():
+    code = ("import sys, cm3d, cm3d.cli, cm3d.ops.camera, cm3d.data.io, cm3d.data.synthetic, cm3d.eval; "
+            "print(sorted(m for m in ('cv2', 'open3d', 'matplotlib') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def test_console_script_help():
+    out = subprocess.run([sys.executable, "-m", "cm3d.cli", "--help"], capture_output=True, text=True)
+    assert out.returncode == 0 and "generate" in out.stdout and "eval" in out.stdout
+
+
+@pytest.mark.parametrize("level", ["extreme"])
+def test_generate_bad_level_is_clear(tmp_path, level, capsys):
+    assert cli.main(["generate", "--out", str(tmp_path), "--level", level, "--frames", "2",
+                     "--height", "16", "--width", "16"]) == 2
+    assert "level" in capsys.readouterr().err
