@@ -1,0 +1,23 @@
+"""Smoke test: every script in experiments/ runs with --quick and writes its headline JSON."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPTS = sorted(p for p in (ROOT / "experiments").glob("*.py") if not p.name.startswith("_"))
+
+
+@pytest.mark.parametrize("script", SCRIPTS, ids=lambda p: p.name)
+def test_experiment_quick(script, tmp_path):
+    out = tmp_path / "figures.json"
+    proc = subprocess.run([sys.executable, str(script), "--quick", "--json", str(out)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
+    assert proc.stdout.strip(), "an experiment prints a readable table"
+    figures = json.loads(out.read_text())
+    assert isinstance(figures, dict) and figures, "headline figures: one flat JSON object"
+    assert all(not isinstance(v, (dict, list)) for v in figures.values()), "the JSON object is flat"
