@@ -40,8 +40,8 @@ from cm3d.data.atomic import atomic_write
 from cm3d.data.sequence import GroundTruth, Sequence
 from cm3d.data.tum import read_tum, write_tum  # noqa: F401  (re-exported: io is the one file API)
 
-__all__ = ["SequenceFormatError", "load_sequence", "read_tum", "save_sequence", "validate_sequence",
-           "write_tum"]
+__all__ = ["SequenceFormatError", "load_sequence", "read_tum", "save_sequence", "sequence_from_arrays",
+           "validate_sequence", "write_tum"]
 
 # Expected shape of each array key once `images` fixes S, H, W (numbers are fixed trailing dims).
 _SHAPES = {
@@ -241,11 +241,6 @@ def load_sequence(path: str | os.PathLike) -> Sequence:
     if not isinstance(npz, np.lib.npyio.NpzFile):
         raise _err(src, "<file>", "is a single .npy array, not an .npz archive")
     with npz:
-        for key in ("images", "depth", "intrinsic"):
-            if key not in npz.files:
-                raise _err(src, key, "missing required key")
-        if "extrinsic" not in npz.files and "cam_to_world" not in npz.files:
-            raise _err(src, "extrinsic", "missing required key (or 'cam_to_world')")
         raw = {}
         for key in _KNOWN:
             if key in npz.files:
@@ -253,6 +248,19 @@ def load_sequence(path: str | os.PathLike) -> Sequence:
                     raw[key] = npz[key]
                 except ValueError as e:  # object arrays need pickle
                     raise _err(src, key, f"cannot be read without pickle ({e})") from e
+    return sequence_from_arrays(raw, src)
+
+
+def sequence_from_arrays(arrays: dict, source: str = "<arrays>") -> Sequence:
+    """A validated :class:`Sequence` from a dict of arrays with the keys of the file format (a
+    VGGT predictions dict, for example); unknown keys are ignored."""
+    src = source
+    for key in ("images", "depth", "intrinsic"):
+        if key not in arrays:
+            raise _err(src, key, "missing required key")
+    if "extrinsic" not in arrays and "cam_to_world" not in arrays:
+        raise _err(src, "extrinsic", "missing required key (or 'cam_to_world')")
+    raw = {k: np.asarray(v) for k, v in arrays.items() if k in _KNOWN}
     if raw["intrinsic"].ndim == 4:  # leading batch axis [1, S, ...] on every array
         for key, a in raw.items():
             if key != "meta_json":
