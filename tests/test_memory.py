@@ -1,0 +1,153 @@
+"""Memory bank: pytree, capacity policy, hashed recall, persistence (atomic, checksummed)."""
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cm3d import memory
+from cm3d.ops import descriptors
+
+CFG = memory.MemoryConfig(max_maps=4, max_points=64, max_keyframes=3)
+
+
+def _entry(seed, cfg=CFG):
+    rng = np.random.default_rng(seed)
+    kf = rng.normal(size=(cfg.max_keyframes, cfg.image_dim)).astype(np.float32)
+    kf /= np.linalg.norm(kf, axis=1, keepdims=True)
+    pts = rng.normal(size=(cfg.max_points, 3)).astype(np.float32)
+    return memory.MapEntry(
+        points=pts, normals=np.tile([0, 0, 1.0], (cfg.max_points, 1)), conf=np.ones(cfg.max_points),
+        colors=rng.integers(0, 255, (cfg.max_points, 3)).astype(np.uint8),
+        point_valid=np.arange(cfg.max_points) < 50, kf_desc=kf, kf_valid=np.array([True, True, False]),
+        cloud_desc=np.asarray(descriptors.cloud_descriptor(pts)))
+
+
+def _bank(n):
+    bank = memory.empty(CFG)
+    for i in range(n):
+        bank, _ = memory.add_map(bank, _entry(i))
+    return bank
+
+
+def test_insert_fills_slots_and_full_bank_is_refused():
+    bank = _bank(4)
+    assert int(bank.num_maps) == 4 and list(np.asarray(bank.visits)) == [1, 1, 1, 1]
+    same, map_id = jax.jit(memory.insert_map)(bank, _entry(9))
+    assert int(map_id) == -1
+    jax.tree.map(np.testing.assert_array_equal, same, bank)
+    with pytest.raises(memory.MemoryFullError, match="full"):
+        memory.add_map(bank, _entry(9))
+    freed = memory.remove_map(bank, 2)
+    assert list(np.asarray(freed.map_valid)) == [True, True, False, True]
+    again, map_id = memory.insert_map(freed, _entry(9))
+    assert int(map_id) == 2
+
+
+def test_global_table_is_the_flat_view():
+    bank = _bank(2)
+    table, codes, valid, map_id = memory.global_table(bank)
+    assert table.shape == (4 * 3, CFG.image_dim) and list(np.asarray(map_id[:6])) == [0, 0, 0, 1, 1, 1]
+    assert list(np.asarray(valid[:7])) == [True, True, False, True, True, False, False]
+    np.testing.assert_array_equal(codes[1], descriptors.hash_codes(bank.kf_desc[0, 1], bank.planes))
+
+
+def test_recall_votes_for_the_map_with_similar_keyframes():
+    bank = _bank(3)
+    rng = np.random.default_rng(5)
+    q = np.asarray(bank.kf_desc[1, :2]) + 0.03 * rng.normal(size=(2, CFG.image_dim))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q = np.concatenate([q, np.zeros((1, CFG.image_dim))]).astype(np.float32)
+    r = jax.jit(memory.recall, static_argnums=4)(bank, q, np.array([True, True, False]),
+                                                 bank.cloud_desc[1], CFG)
+    assert int(r.candidates[0]) == 1 and float(r.votes[1]) == 2.0
+    assert list(np.asarray(r.candidates[1:])) == [-1, -1]  # no votes: never a candidate
+    # an unrelated query recalls nothing
+    u = rng.normal(size=(3, CFG.image_dim)).astype(np.float32)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    r = memory.recall(bank, u, np.ones(3, bool), bank.cloud_desc[0], CFG)
+    assert list(np.asarray(r.candidates)) == [-1, -1, -1]
+
+
+def test_recall_vmaps_over_queries():
+    bank = _bank(3)
+    q = jnp.stack([bank.kf_desc[i] for i in range(3)])  # (3 queries, K, D)
+    qv = jnp.ones((3, CFG.max_keyframes), bool)
+    batched = jax.vmap(memory.recall, in_axes=(None, 0, 0, 0, None))(bank, q, qv, bank.cloud_desc[:3], CFG)
+    for i in range(3):
+        single = memory.recall(bank, q[i], qv[i], bank.cloud_desc[i], CFG)
+        np.testing.assert_array_equal(batched.candidates[i], single.candidates)
+    assert list(np.asarray(batched.candidates[:, 0])) == [0, 1, 2]
+
+
+def test_save_load_round_trip(tmp_path):
+    bank = _bank(3)
+    memory.save(bank, tmp_path / "bank.cm3d", CFG)
+    back, cfg = memory.load(tmp_path / "bank.cm3d")
+    assert cfg == CFG
+    jax.tree.map(np.testing.assert_array_equal, back, bank)
+    assert os.listdir(tmp_path) == ["bank.cm3d"]
+
+
+def test_damaged_files_fail_clearly(tmp_path):
+    path = tmp_path / "bank.cm3d"
+    memory.save(_bank(2), path, CFG)
+    data = path.read_bytes()
+    path.write_bytes(data[:-100])
+    with pytest.raises(memory.MemoryFileError, match="checksum"):
+        memory.load(path)
+    flipped = bytearray(data)
+    flipped[-5] ^= 0xFF
+    path.write_bytes(bytes(flipped))
+    with pytest.raises(memory.MemoryFileError, match="checksum"):
+        memory.load(path)
+    path.write_bytes(b"PK\x03\x04 not a bank")
+    with pytest.raises(memory.MemoryFileError, match="magic"):
+        memory.load(path)
+    with pytest.raises(memory.MemoryFileError, match="no such"):
+        memory.load(tmp_path / "missing.cm3d")
+
+
+def test_refuses_to_save_non_finite_bank(tmp_path):
+    bank = _bank(1)
+    bank = bank.replace(points=bank.points.at[0, 0, 0].set(jnp.nan))
+    with pytest.raises(ValueError, match="non-finite"):
+        memory.save(bank, tmp_path / "b.cm3d", CFG)
+    assert not (tmp_path / "b.cm3d").exists()
+
+
+def test_killed_writer_leaves_previous_bank_loadable(tmp_path):
+    path = tmp_path / "bank.cm3d"
+    memory.save(_bank(2), path, CFG)
+    before = path.read_bytes()
+    # a writer that saves a large bank over and over; kill it mid-write
+    script = textwrap.dedent(f"""
+        import sys
+        from cm3d import memory
+        cfg = memory.MemoryConfig(max_maps=64, max_points=20000, max_keyframes=16)
+        bank = memory.empty(cfg)
+        print("ready", flush=True)
+        while True:
+            memory.save(bank, {str(path)!r}, cfg)
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "ready"
+    # wait until a temporary file shows up (a save is in flight), then kill
+    deadline, seen = time.monotonic() + 30, False
+    while not seen and time.monotonic() < deadline:
+        seen = any(n.endswith(".tmp") for n in os.listdir(tmp_path))
+        time.sleep(0.0005)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert seen, "the writer never started a save"
+    bank, cfg = memory.load(path)  # either the old bank or a complete new one, never a torn file
+    assert cfg.max_maps in (CFG.max_maps, 64)
+    if cfg == CFG:
+        assert path.read_bytes() == before
