@@ -48,6 +48,35 @@ def _demo(args) -> int:
     return 0
 
 
+def _memory(args) -> int:
+    import numpy as np
+
+    from cm3d import memory
+
+    bank, cfg = memory.load(args.bank)
+    valid = np.asarray(bank.map_valid)
+    if args.action == "ls":
+        print(f"{args.bank}: {int(valid.sum())} of {cfg.max_maps} maps "
+              f"(capacity {cfg.max_points} points, {cfg.max_keyframes} keyframes each)")
+        for m in np.flatnonzero(valid):
+            print(f"  map {m:3d}: {int(np.asarray(bank.point_valid[m]).sum()):6d} points, "
+                  f"{int(np.asarray(bank.kf_valid[m]).sum()):3d} keyframes, {int(bank.visits[m])} visits")
+        return 0
+    if args.map_id is None or not (0 <= args.map_id < cfg.max_maps) or not valid[args.map_id]:
+        raise ValueError(f"map id: {args.map_id} is not a stored map (valid: {np.flatnonzero(valid).tolist()})")
+    m = args.map_id
+    if args.action == "show":
+        pts = np.asarray(bank.points[m])[np.asarray(bank.point_valid[m])]
+        lo, hi = (pts.min(0), pts.max(0)) if len(pts) else (np.zeros(3), np.zeros(3))
+        print(json.dumps({"map_id": int(m), "points": int(len(pts)), "keyframes": int(np.asarray(bank.kf_valid[m]).sum()),
+                          "visits": int(bank.visits[m]), "bounds_min": lo.round(4).tolist(),
+                          "bounds_max": hi.round(4).tolist()}, indent=1))
+        return 0
+    memory.save(memory.remove_map(bank, m), args.bank, cfg)
+    print(f"removed map {m} from {args.bank}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="cm3d", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -76,6 +105,12 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--quick", action="store_true", help="tiny images, for smoke tests")
     d.add_argument("--json", default=None, metavar="PATH", help="also write the table as JSON")
     d.set_defaults(func=_demo)
+
+    m = sub.add_parser("memory", help="list, show or remove maps of a memory bank file")
+    m.add_argument("action", choices=["ls", "show", "rm"])
+    m.add_argument("bank", help="memory bank file (.cm3d)")
+    m.add_argument("map_id", nargs="?", type=int, help="map id, for show and rm")
+    m.set_defaults(func=_memory)
     return p
 
 
@@ -87,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as err:
         print(f"cm3d {args.command}: error: {err}", file=sys.stderr)
         return 2
-    if args.command != "eval":
+    if args.command not in ("eval", "memory"):
         print(f"done in {time.perf_counter() - t0:.1f} s")
     return rc
 

@@ -201,6 +201,34 @@ def recall(bank: MemoryBank, query_desc, query_valid, query_cloud_desc, cfg: Mem
                   candidate_scores=top_scores)
 
 
+def select_keyframes(desc, valid, threshold: float, max_keyframes: int):
+    """Keyframes spaced evenly in feature space: frame 0 (the first valid one), then every frame
+    whose descriptor is farther than ``threshold`` (L2) from the last keyframe's.
+
+    desc (S, D), valid (S,) -> (indices (max_keyframes,) int32, kf_valid (max_keyframes,) bool).
+    When more frames qualify than the capacity holds, an evenly spaced subset of them is kept
+    (first and last included), so coverage of the sequence is preserved.
+    """
+    S = desc.shape[0]
+
+    def body(last, x):
+        d, ok = x
+        far = jnp.sum((d - last) ** 2) > threshold**2
+        first = jnp.all(last == 0)
+        take = ok & (far | first)
+        return jnp.where(take, d, last), take
+
+    _, take = jax.lax.scan(body, jnp.zeros(desc.shape[1], desc.dtype), (desc, valid))
+    n = jnp.sum(take)
+    order = jnp.argsort(~take, stable=True)  # selected frames first, in time order
+    pos = jnp.round(jnp.linspace(0.0, 1.0, max_keyframes) * jnp.maximum(n - 1, 0)).astype(jnp.int32)
+    spread = order[pos]
+    direct = order[jnp.arange(max_keyframes) % S]
+    idx = jnp.where(n > max_keyframes, spread, direct)
+    kf_valid = jnp.arange(max_keyframes) < jnp.minimum(n, max_keyframes)
+    return jnp.where(kf_valid, idx, 0).astype(jnp.int32), kf_valid
+
+
 # ----------------------------------------------------------------------------------------------
 # Persistence
 

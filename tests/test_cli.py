@@ -77,3 +77,32 @@ def test_generate_bad_level_is_clear(tmp_path, level, capsys):
     assert cli.main(["generate", "--out", str(tmp_path), "--level", level, "--frames", "2",
                      "--height", "16", "--width", "16"]) == 2
     assert "level" in capsys.readouterr().err
+
+
+def test_memory_ls_show_rm(tmp_path, capsys):
+    from cm3d import memory
+
+    cfg = memory.MemoryConfig(max_maps=3, max_points=16, max_keyframes=2)
+    bank = memory.empty(cfg)
+    for seed in range(2):
+        rng = np.random.default_rng(seed)
+        entry = memory.MapEntry(
+            points=rng.normal(size=(16, 3)), normals=np.zeros((16, 3)), conf=np.ones(16),
+            colors=np.zeros((16, 3), np.uint8), point_valid=np.arange(16) < 10 + seed,
+            kf_desc=np.zeros((2, cfg.image_dim)), kf_valid=np.array([True, False]),
+            cloud_desc=np.zeros(cfg.cloud_dim))
+        bank, _ = memory.add_map(bank, entry)
+    path = tmp_path / "bank.cm3d"
+    memory.save(bank, path, cfg)
+    assert cli.main(["memory", "ls", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "2 of 3 maps" in out and "map   1:     11 points" in out
+    assert cli.main(["memory", "show", str(path), "1"]) == 0
+    assert json.loads(capsys.readouterr().out)["points"] == 11
+    assert cli.main(["memory", "rm", str(path), "0"]) == 0
+    capsys.readouterr()
+    assert cli.main(["memory", "show", str(path), "0"]) == 2
+    assert "not a stored map" in capsys.readouterr().err
+    path.write_bytes(path.read_bytes()[:-10])
+    assert cli.main(["memory", "ls", str(path)]) == 2
+    assert "checksum" in capsys.readouterr().err

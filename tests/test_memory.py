@@ -151,3 +151,21 @@ def test_killed_writer_leaves_previous_bank_loadable(tmp_path):
     assert cfg.max_maps in (CFG.max_maps, 64)
     if cfg == CFG:
         assert path.read_bytes() == before
+
+
+def test_select_keyframes_spacing_and_capacity():
+    # a 1-D walk in feature space: frame i sits at distance 0.1 * i from frame 0
+    S, D = 30, 4
+    desc = np.zeros((S, D), np.float32)
+    desc[:, 0] = 0.1 * np.arange(S) + 1.0
+    valid = np.ones(S, bool)
+    idx, ok = memory.select_keyframes(desc, valid, threshold=0.35, max_keyframes=16)
+    idx = np.asarray(idx)[np.asarray(ok)]
+    assert list(idx) == [0, 4, 8, 12, 16, 20, 24, 28]  # a new keyframe every 0.4 > 0.35
+    idx, ok = jax.jit(memory.select_keyframes, static_argnums=(2, 3))(desc, valid, 0.05, 5)
+    assert bool(np.all(ok)) and list(np.asarray(idx)) == [0, 7, 14, 22, 29]  # over capacity: spread
+    valid[:3] = False
+    idx, ok = memory.select_keyframes(desc, valid, 0.35, 16)
+    assert int(np.asarray(idx)[0]) == 3  # the first valid frame starts
+    idx, ok = memory.select_keyframes(desc, np.zeros(S, bool), 0.35, 4)
+    assert not bool(np.any(ok))
