@@ -63,6 +63,8 @@ class Primitives:
     kind: np.ndarray  # (P,) int32: ROOM, BOX, SPHERE or EMPTY
     size: np.ndarray  # (P, 3) half extents (sphere: radius in [0])
     color: np.ndarray  # (P, 3) base RGB in [0, 1]
+    color2: np.ndarray  # (P, 3) RGB of faces whose object-frame normal is along z (floor, ceiling, tops)
+    style: np.ndarray  # (P, 2) texture frequency scale and spot threshold
     seed: np.ndarray  # (P,) int32 texture seed
     moving: np.ndarray  # (P,) bool
     pose: np.ndarray  # (S, P, 4, 4)
@@ -77,6 +79,8 @@ class Scene:
     kind: np.ndarray
     size: np.ndarray
     color: np.ndarray
+    color2: np.ndarray
+    style: np.ndarray
     tex_seed: np.ndarray
     pose: np.ndarray  # (P_static, 4, 4)
 
@@ -104,11 +108,23 @@ def _rot_axis(axis, angle):
     return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
 
 
+def _palette(rng, n, sat=(0.2, 0.85), val=(0.5, 0.95)):
+    """n random RGB colours (n, 3) from hue/saturation/value ranges."""
+    import colorsys
+
+    return np.array([colorsys.hsv_to_rgb(rng.uniform(), rng.uniform(*sat), rng.uniform(*val)) for _ in range(n)])
+
+
+def _styles(rng, n):
+    """Texture styles (n, 2): frequency scale and spot threshold (spot density)."""
+    return np.stack([rng.uniform(0.6, 1.6, n), rng.uniform(0.62, 0.8, n)], -1)
+
+
 def make_scene(seed: int, cfg: WorldConfig = WorldConfig()) -> Scene:
-    """A room of random size with static boxes standing along its walls."""
+    """A room of random size, palette and texture style with static boxes along its walls."""
     rng = np.random.default_rng([seed, 0])
     half = np.array([rng.uniform(3.0, 5.0), rng.uniform(2.5, 4.0), rng.uniform(1.3, 1.75)])
-    kind, size, color, tex, pose = [ROOM], [half], [rng.uniform(0.45, 0.9, 3)], [], []
+    kind, size, color, tex, pose = [ROOM], [half], [_palette(rng, 1)[0]], [], []
     pose.append(_pose(np.eye(3), [0, 0, half[2]]))
     for _ in range(cfg.num_static_boxes):
         h = rng.uniform([0.25, 0.25, 0.2], [0.7, 0.6, 0.9])
@@ -117,11 +133,12 @@ def make_scene(seed: int, cfg: WorldConfig = WorldConfig()) -> Scene:
         gap = rng.uniform(0.05, 0.4)
         x = along * half[0] if wall < 2 else (1 if wall == 2 else -1) * (half[0] - h[0] - gap)
         y = (1 if wall == 0 else -1) * (half[1] - h[1] - gap) if wall < 2 else along * half[1]
-        kind.append(BOX), size.append(h), color.append(rng.uniform(0.15, 1.0, 3))
+        kind.append(BOX), size.append(h), color.append(_palette(rng, 1, val=(0.3, 1.0))[0])
         pose.append(_pose(_rot_z(rng.uniform(-0.3, 0.3)), [x, y, h[2]]))
     tex = rng.integers(0, 2**20, len(kind))
-    return Scene(seed, half, np.array(kind, np.int32), np.array(size), np.array(color),
-                 tex.astype(np.int32), np.array(pose))
+    color2 = _palette(rng, len(kind), val=(0.35, 0.95))
+    return Scene(seed, half, np.array(kind, np.int32), np.array(size), np.array(color), color2,
+                 _styles(rng, len(kind)), tex.astype(np.int32), np.array(pose))
 
 
 def _look(position, yaw, pitch, roll):
@@ -155,7 +172,8 @@ def camera_trajectory(scene: Scene, visit: int, num_frames: int, cfg: WorldConfi
 
 
 def moving_objects(scene: Scene, visit: int, cams: np.ndarray, cfg: WorldConfig):
-    """Moving boxes and spheres for one visit, placed ahead of the camera: (kind, size, color, seed, pose (S,M,4,4))."""
+    """Moving boxes and spheres for one visit, placed ahead of the camera:
+    (kind, size, color, seed, pose (S,M,4,4)); their colour2 / style come from :func:`assemble`."""
     rng = np.random.default_rng([scene.seed, visit, 2])
     S = len(cams)
     t = np.arange(S) / cfg.fps
@@ -189,6 +207,7 @@ def moving_objects(scene: Scene, visit: int, cams: np.ndarray, cfg: WorldConfig)
 def assemble(scene: Scene, visit: int, cams: np.ndarray, cfg: WorldConfig) -> Primitives:
     """Static and moving primitives, padded to :data:`MAX_PRIMITIVES`."""
     mk, ms, mc, mseed, mpose = moving_objects(scene, visit, cams, cfg)
+    rng = np.random.default_rng([scene.seed, visit, 4])
     S, Ps = len(cams), len(scene.kind)
     P = Ps + len(mk)
     if P > MAX_PRIMITIVES:
@@ -197,11 +216,13 @@ def assemble(scene: Scene, visit: int, cams: np.ndarray, cfg: WorldConfig) -> Pr
     kind = np.concatenate([scene.kind, mk, np.full(pad, EMPTY, np.int32)])
     size = np.concatenate([scene.size, ms.reshape(-1, 3), np.ones((pad, 3))])
     color = np.concatenate([scene.color, mc.reshape(-1, 3), np.zeros((pad, 3))])
+    color2 = np.concatenate([scene.color2, _palette(rng, len(mk)).reshape(-1, 3), np.zeros((pad, 3))])
+    style = np.concatenate([scene.style, _styles(rng, len(mk)).reshape(-1, 2), np.ones((pad, 2))])
     seed = np.concatenate([scene.tex_seed, mseed, np.zeros(pad, np.int32)])
     moving = np.concatenate([np.zeros(Ps, bool), np.ones(len(mk), bool), np.zeros(pad, bool)])
     static_pose = np.broadcast_to(scene.pose, (S, Ps, 4, 4))
     pose = np.concatenate([static_pose, mpose, np.broadcast_to(np.eye(4), (S, pad, 4, 4))], 1)
-    return Primitives(kind, size, color, seed, moving, pose)
+    return Primitives(kind, size, color, color2, style, seed, moving, pose)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -237,13 +258,15 @@ def value_noise(p, seed):
     return out
 
 
-def texture(p_local, seed, base_color):
-    """Solid texture colour (..., 3): octaves of value noise, crisp spots and a colour wobble."""
+def texture(p_local, seed, base_color, style):
+    """Solid texture colour (..., 3): octaves of value noise, crisp spots and a colour wobble;
+    ``style`` (..., 2) scales the frequencies and sets the spot threshold."""
     n = 0.0
+    p = p_local * style[..., :1]
     for k, (freq, amp) in enumerate([(2.5, 0.35), (7.0, 0.3), (16.0, 0.25), (36.0, 0.15)]):
-        n = n + amp * value_noise(p_local * freq, seed + 7919 * k)
-    spots = value_noise(p_local * 18.0, seed + 104729)
-    spots = jnp.clip((spots - 0.7) / 0.04, 0.0, 1.0)
+        n = n + amp * value_noise(p * freq, seed + 7919 * k)
+    spots = value_noise(p * 18.0, seed + 104729)
+    spots = jnp.clip((spots - style[..., 1]) / 0.04, 0.0, 1.0)
     hue = value_noise(p_local * 1.2, seed + 31)[..., None]
     col = (hue * base_color + (1 - hue) * base_color[..., ::-1]) * (0.25 + 1.0 * n[..., None])
     return col * (1.0 - 0.7 * spots[..., None]) + 0.3 * spots[..., None] * (1.0 - base_color)
@@ -287,7 +310,9 @@ def _shade(x, obj, prim, obj_to_world):
     light = jnp.array([0.4, 0.25, 0.88])
     light = light / jnp.linalg.norm(light)
     lambert = 0.45 + 0.55 * jnp.abs(jnp.sum(n * light, -1))
-    col = texture(pl, prim["seed"][obj], prim["color"][obj])
+    horizontal = (jnp.abs(nl[..., 2]) > 0.5) & (kind != SPHERE)
+    base = jnp.where(horizontal[..., None], prim["color2"][obj], prim["color"][obj])
+    col = texture(pl, prim["seed"][obj], base, prim["style"][obj])
     return jnp.clip(col * lambert[..., None], 0.0, 1.0)
 
 
@@ -334,8 +359,8 @@ def _render(prim, K, cams, cams_next, pose, pose_next, *, height, width, supersa
 def render(prims: Primitives, cams: np.ndarray, cfg: WorldConfig):
     """Ray-cast a visit: (rgb uint8 (S,H,W,3), depth (S,H,W), object id (S,H,W), flow (S-1,H,W,2))."""
     K = intrinsics(cfg)
-    prim = {k: jnp.asarray(getattr(prims, k)) for k in ("kind", "size", "color", "seed")}
-    prim = {**prim, "size": prim["size"].astype(jnp.float32), "color": prim["color"].astype(jnp.float32)}
+    prim = {k: jnp.asarray(getattr(prims, k)) for k in ("kind", "seed")}
+    prim |= {k: jnp.asarray(getattr(prims, k), jnp.float32) for k in ("size", "color", "color2", "style")}
     cams_next = np.concatenate([cams[1:], cams[-1:]])
     pose_next = np.concatenate([prims.pose[1:], prims.pose[-1:]])
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
