@@ -60,6 +60,14 @@ class MemoryConfig:
     match_radius: float = 0.45  # ... and its exact L2 distance to the query is below this
     top_k: int = 3  # candidate maps passed on to verification
     w_cloud: float = 0.5  # weight of the 3D-descriptor similarity when re-ranking
+    voxel_resolution: float = 60.0  # map voxel = largest extent / this (grown while over capacity)
+    min_conf_quantile: float = 0.3  # static points: confidence above this quantile of the sequence
+    pixel_stride: int = 4  # static points: every stride-th pixel
+    scales: tuple[float, ...] = (0.7, 1.0, 1.4)  # query -> map scale hypotheses for registration
+    min_fitness: float = 0.35  # verification: share of query voxels with a map voxel nearby
+    max_rmse: float = 0.6  # verification: inlier RMSE, in map voxels
+    normal_radius: float = 0.2  # neighbourhood cell for map normals (map units: VGGT-normalised)
+    min_inliers: int = 150  # verification: absolute number of inlier voxels
 
 
 @struct.dataclass
@@ -77,6 +85,7 @@ class MemoryBank:
     kf_valid: jax.Array  # (M, K) bool
     map_valid: jax.Array  # (M,) bool
     visits: jax.Array  # (M,) int32: how many sequences built or updated the map
+    voxel_size: jax.Array  # (M,) float32: the map's voxel size (its own units)
     planes: jax.Array  # (bits, D2) float32: the LSH hyperplanes the codes were made with
 
     @property
@@ -95,7 +104,7 @@ def empty(cfg: MemoryConfig = MemoryConfig()) -> MemoryBank:
         point_valid=jnp.zeros((M, P), bool), cloud_desc=jnp.zeros((M, cfg.cloud_dim), jnp.float32),
         kf_desc=jnp.zeros((M, K, cfg.image_dim), jnp.float32),
         kf_codes=jnp.zeros((M, K, cfg.hash_bits // 32), jnp.uint32), kf_valid=jnp.zeros((M, K), bool),
-        map_valid=jnp.zeros((M,), bool), visits=jnp.zeros((M,), jnp.int32),
+        map_valid=jnp.zeros((M,), bool), visits=jnp.zeros((M,), jnp.int32), voxel_size=jnp.zeros((M,), jnp.float32),
         planes=descriptors.hash_planes(cfg.image_dim, cfg.hash_bits, cfg.hash_seed).astype(jnp.float32),
     )
 
@@ -112,6 +121,7 @@ class MapEntry:
     kf_desc: jax.Array  # (K, D2)
     kf_valid: jax.Array  # (K,)
     cloud_desc: jax.Array  # (D3,)
+    voxel_size: jax.Array  # ()
 
 
 def insert_map(bank: MemoryBank, entry: MapEntry) -> tuple[MemoryBank, jax.Array]:
@@ -131,7 +141,7 @@ def insert_map(bank: MemoryBank, entry: MapEntry) -> tuple[MemoryBank, jax.Array
         point_valid=put(bank.point_valid, entry.point_valid), cloud_desc=put(bank.cloud_desc, entry.cloud_desc),
         kf_desc=put(bank.kf_desc, entry.kf_desc), kf_codes=put(bank.kf_codes, codes),
         kf_valid=put(bank.kf_valid, entry.kf_valid), map_valid=put(bank.map_valid, jnp.bool_(True)),
-        visits=put(bank.visits, jnp.int32(1)),
+        visits=put(bank.visits, jnp.int32(1)), voxel_size=put(bank.voxel_size, entry.voxel_size),
     )
     return new, jnp.where(ok, slot, -1).astype(jnp.int32)
 
@@ -230,6 +240,202 @@ def select_keyframes(desc, valid, threshold: float, max_keyframes: int):
 
 
 # ----------------------------------------------------------------------------------------------
+# Building, verifying, relocalising and updating maps
+
+
+@struct.dataclass
+class SequenceCloud:
+    """The static, confident part of one sequence in its own (prior) frame: points (N, 3),
+    colors (N, 3) uint8, conf (N,), valid (N,); N = frames x pixels / stride^2."""
+
+    points: jax.Array
+    colors: jax.Array
+    conf: jax.Array
+    valid: jax.Array
+
+
+def sequence_cloud(depth, conf, K, cam_to_world, images, static, cfg: MemoryConfig) -> SequenceCloud:
+    """Lift every ``cfg.pixel_stride``-th static pixel whose confidence is above the sequence's
+    ``cfg.min_conf_quantile`` quantile (and depth > 0) to the world: (S, H, W) inputs."""
+    from cm3d.ops import camera
+
+    st = cfg.pixel_stride
+    d = depth[:, ::st, ::st]
+    c = conf[:, ::st, ::st]
+    Ks = K.at[..., :2, :].divide(st)  # pixel (u, v) of the strided grid is (st u, st v) in full
+    pts = camera.unproject(d, Ks, cam_to_world)
+    ok = static[:, ::st, ::st] & (d > 0) & jnp.isfinite(d)
+    thr = jnp.nanquantile(jnp.where(ok, c, jnp.nan), cfg.min_conf_quantile)
+    ok = ok & (c >= thr)
+    return SequenceCloud(points=pts.reshape(-1, 3), colors=images[:, ::st, ::st].reshape(-1, 3),
+                         conf=c.reshape(-1), valid=ok.reshape(-1))
+
+
+def _downsample_to_capacity(points, valid, features, voxel_size, capacity: int):
+    """Voxel downsample, growing the voxel by 1.25x until the occupied voxels fit ``capacity``."""
+    from cm3d.ops.voxel import voxel_downsample
+
+    def grid(vs):
+        return voxel_downsample(points, vs, valid, features, capacity=capacity)
+
+    def cond(c):
+        vs, i = c
+        return (grid(vs).count > capacity) & (i < 12)
+
+    vs, _ = jax.lax.while_loop(cond, lambda c: (c[0] * 1.25, c[1] + 1), (jnp.asarray(voxel_size, jnp.float32), 0))
+    return grid(vs), vs
+
+
+def _entry_from_points(points, colors, conf, valid, kf_desc, kf_valid, voxel_size, cfg: MemoryConfig) -> MapEntry:
+    """Downsample to the bank's capacity and describe (see :func:`build_entry`)."""
+    from cm3d.ops.neighbors import estimate_normals
+
+    feats = jnp.concatenate([colors.astype(jnp.float32), conf[:, None]], axis=1)
+    vox, vs = _downsample_to_capacity(points, valid, feats, voxel_size, cfg.max_points)
+    normals = estimate_normals(vox.points, vox.valid, k=16, radius=cfg.normal_radius)
+    return MapEntry(points=vox.points, normals=jnp.where(vox.valid[:, None], normals, 0.0),
+                    conf=vox.features[:, 3], colors=jnp.clip(jnp.round(vox.features[:, :3]), 0, 255).astype(jnp.uint8),
+                    point_valid=vox.valid, kf_desc=kf_desc, kf_valid=kf_valid,
+                    cloud_desc=descriptors.cloud_descriptor(vox.points, vox.valid), voxel_size=vs)
+
+
+def build_entry(cloud: SequenceCloud, kf_desc, kf_valid, cfg: MemoryConfig) -> MapEntry:
+    """A new map from a sequence: adaptive voxel size from the scene extent, mean point, colour and
+    confidence per voxel, PCA normals, the 3D descriptor and the keyframe descriptors."""
+    from cm3d.ops.voxel import adaptive_voxel_size
+
+    vs = adaptive_voxel_size(cloud.points, cloud.valid, cfg.voxel_resolution)
+    return _entry_from_points(cloud.points, cloud.colors, cloud.conf, cloud.valid, kf_desc, kf_valid, vs, cfg)
+
+
+@struct.dataclass
+class Verification:
+    """ICP verification of one candidate: accepted, transform (4, 4) query -> map (Sim(3)),
+    scale, fitness, inlier_count, inlier_rmse (map units)."""
+
+    accepted: jax.Array
+    transform: jax.Array
+    scale: jax.Array
+    fitness: jax.Array
+    inlier_count: jax.Array
+    inlier_rmse: jax.Array
+
+
+def registration_options(cfg: MemoryConfig):
+    from cm3d.solvers.align import GlobalOptions
+
+    return GlobalOptions(scales=tuple(cfg.scales), with_scale=True)
+
+
+def verify(bank: MemoryBank, map_id, entry: MapEntry, cfg: MemoryConfig, key) -> Verification:
+    """Register the query's map-entry cloud (its voxels) to map ``map_id`` from any pose and scale
+    (FPFH + RANSAC + Sim(3) ICP) and accept on absolute inlier count, fitness and inlier RMSE."""
+    from cm3d.solvers.align import global_registration
+
+    m = jnp.maximum(map_id, 0)
+    g = global_registration(entry.points, bank.points[m], entry.point_valid, bank.point_valid[m], key,
+                            registration_options(cfg))
+    n_src = jnp.sum(entry.point_valid)
+    inliers = jnp.round(g.fitness * n_src).astype(jnp.int32)
+    vs = jnp.maximum(bank.voxel_size[m], 1e-12)
+    ok = ((map_id >= 0) & bank.map_valid[m] & (inliers >= cfg.min_inliers) & (g.fitness >= cfg.min_fitness)
+          & (g.inlier_rmse <= cfg.max_rmse * vs) & jnp.all(jnp.isfinite(g.transform)))
+    return Verification(accepted=ok, transform=g.transform, scale=g.scale, fitness=g.fitness,
+                        inlier_count=inliers, inlier_rmse=g.inlier_rmse)
+
+
+def relocalize(transform, cam_to_world):
+    """Cameras (..., 4, 4) of the query frame moved into the map frame by a Sim(3) ``transform``
+    (``[s R, t]``): rotation ``R R_c``, centre ``s R t_c + t``; the result is a rigid pose."""
+    A, t = transform[:3, :3], transform[:3, 3]
+    s = jnp.cbrt(jnp.linalg.det(A))
+    R = A / s
+    out = cam_to_world.at[..., :3, :3].set(R @ cam_to_world[..., :3, :3])
+    return out.at[..., :3, 3].set(jnp.einsum("ij,...j->...i", A, cam_to_world[..., :3, 3]) + t)
+
+
+def _merge_keyframes(old_desc, old_valid, new_desc, new_valid):
+    """Up to K keyframes from the old and new ones: all when they fit, else an evenly spread subset
+    of the concatenation (old first), so both visits stay represented."""
+    K = old_desc.shape[0]
+    desc = jnp.concatenate([old_desc, new_desc])
+    valid = jnp.concatenate([old_valid, new_valid])
+    order = jnp.argsort(~valid, stable=True)
+    n = jnp.sum(valid)
+    pos = jnp.round(jnp.linspace(0.0, 1.0, K) * jnp.maximum(n - 1, 0)).astype(jnp.int32)
+    idx = jnp.where(n > K, order[pos], order[:K])
+    return desc[idx], jnp.arange(K) < jnp.minimum(n, K)
+
+
+def update_map(bank: MemoryBank, map_id, entry: MapEntry, transform, cfg: MemoryConfig) -> MemoryBank:
+    """Merge a verified query into map ``map_id``: its voxels moved by ``transform`` (query ->
+    map), pooled with the map's (weighted by confidence), downsampled again at the map's voxel
+    size (grown if over capacity); keyframes merged; 3D descriptor and normals recomputed."""
+    from cm3d.ops.neighbors import estimate_normals
+
+    m = map_id
+    A, t = transform[:3, :3], transform[:3, 3]
+    q = entry.points @ A.T + t
+    pts = jnp.concatenate([bank.points[m], q])
+    valid = jnp.concatenate([bank.point_valid[m], entry.point_valid])
+    feats = jnp.concatenate([jnp.concatenate([bank.colors[m], entry.colors]).astype(jnp.float32),
+                             jnp.concatenate([bank.conf[m], entry.conf])[:, None]], axis=1)
+    P = bank.points.shape[1]
+    vox, vs = _downsample_to_capacity(pts, valid, feats, bank.voxel_size[m], P)
+    normals = estimate_normals(vox.points, vox.valid, k=16, radius=cfg.normal_radius)
+    kf, kfv = _merge_keyframes(bank.kf_desc[m], bank.kf_valid[m], entry.kf_desc, entry.kf_valid)
+    return bank.replace(
+        points=bank.points.at[m].set(vox.points), normals=bank.normals.at[m].set(jnp.where(vox.valid[:, None], normals, 0.0)),
+        conf=bank.conf.at[m].set(vox.features[:, 3]),
+        colors=bank.colors.at[m].set(jnp.clip(jnp.round(vox.features[:, :3]), 0, 255).astype(jnp.uint8)),
+        point_valid=bank.point_valid.at[m].set(vox.valid),
+        cloud_desc=bank.cloud_desc.at[m].set(descriptors.cloud_descriptor(vox.points, vox.valid)),
+        kf_desc=bank.kf_desc.at[m].set(kf), kf_codes=bank.kf_codes.at[m].set(descriptors.hash_codes(kf, bank.planes)),
+        kf_valid=bank.kf_valid.at[m].set(kfv), visits=bank.visits.at[m].add(1), voxel_size=bank.voxel_size.at[m].set(vs))
+
+
+@struct.dataclass
+class Report:
+    """What :func:`remember` decided: the recall, each candidate's verification (top_k,), the
+    accepted map (-1 if none), the map written to (-1 if the bank was full), the transform
+    query -> map (identity for a new map) and whether a new map was created."""
+
+    recall: Recall
+    checks: Verification
+    recalled: jax.Array
+    map_id: jax.Array
+    transform: jax.Array
+    created: jax.Array
+
+
+def remember(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> tuple[MemoryBank, Report]:
+    """Recall, verify, then update the recalled map or store a new one (pure, jittable).
+
+    ``entry`` is the query sequence built by :func:`build_entry` (its own frame and scale). The
+    top-k recalled candidates are verified; the best accepted one (highest fitness) is updated
+    with the query moved into its frame, else the query becomes a new map (map_id -1 when full).
+    """
+    r = recall(bank, entry.kf_desc, entry.kf_valid, entry.cloud_desc, cfg)
+    keys = jax.random.split(key, cfg.top_k)
+    checks = jax.vmap(lambda m, k: verify(bank, m, entry, cfg, k))(r.candidates, keys)
+    score = jnp.where(checks.accepted, checks.fitness, -jnp.inf)
+    best = jnp.argmax(score)
+    hit = checks.accepted[best]
+    recalled = jnp.where(hit, r.candidates[best], -1)
+    T = jnp.where(hit, checks.transform[best], jnp.eye(4, dtype=checks.transform.dtype))
+
+    def on_hit(b):
+        return update_map(b, recalled, entry, T, cfg), recalled
+
+    def on_miss(b):
+        return insert_map(b, entry)
+
+    bank, map_id = jax.lax.cond(hit, on_hit, on_miss, bank)
+    return bank, Report(recall=r, checks=checks, recalled=recalled, map_id=map_id, transform=T,
+                        created=~hit & (map_id >= 0))
+
+
+# ----------------------------------------------------------------------------------------------
 # Persistence
 
 
@@ -276,7 +482,7 @@ def load(path) -> tuple[MemoryBank, MemoryConfig]:
     if hashlib.sha256(payload).hexdigest() != header["sha256"]:
         raise MemoryFileError(f"{path}: checksum mismatch (truncated or altered file)")
     try:
-        cfg = MemoryConfig(**header["config"])
+        cfg = MemoryConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in header["config"].items()})
     except TypeError as e:
         raise MemoryFileError(f"{path}: unknown config fields ({e})") from None
     arrays, off = {}, 0

@@ -90,7 +90,7 @@ def test_memory_ls_show_rm(tmp_path, capsys):
             points=rng.normal(size=(16, 3)), normals=np.zeros((16, 3)), conf=np.ones(16),
             colors=np.zeros((16, 3), np.uint8), point_valid=np.arange(16) < 10 + seed,
             kf_desc=np.zeros((2, cfg.image_dim)), kf_valid=np.array([True, False]),
-            cloud_desc=np.zeros(cfg.cloud_dim))
+            cloud_desc=np.zeros(cfg.cloud_dim), voxel_size=np.float32(0.1))
         bank, _ = memory.add_map(bank, entry)
     path = tmp_path / "bank.cm3d"
     memory.save(bank, path, cfg)

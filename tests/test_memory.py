@@ -27,7 +27,7 @@ def _entry(seed, cfg=CFG):
         points=pts, normals=np.tile([0, 0, 1.0], (cfg.max_points, 1)), conf=np.ones(cfg.max_points),
         colors=rng.integers(0, 255, (cfg.max_points, 3)).astype(np.uint8),
         point_valid=np.arange(cfg.max_points) < 50, kf_desc=kf, kf_valid=np.array([True, True, False]),
-        cloud_desc=np.asarray(descriptors.cloud_descriptor(pts)))
+        cloud_desc=np.asarray(descriptors.cloud_descriptor(pts)), voxel_size=np.float32(0.1))
 
 
 def _bank(n):
@@ -169,3 +169,88 @@ def test_select_keyframes_spacing_and_capacity():
     assert int(np.asarray(idx)[0]) == 3  # the first valid frame starts
     idx, ok = memory.select_keyframes(desc, np.zeros(S, bool), 0.35, 4)
     assert not bool(np.any(ok))
+
+
+def _room_sequence():
+    from cm3d.data import synthetic
+
+    return synthetic.generate(2, 0, 6, "slight", synthetic.WorldConfig(height=48, width=64))
+
+
+SEQ_CFG = memory.MemoryConfig(max_maps=3, max_points=512, max_keyframes=4, pixel_stride=2)
+
+
+def _entry_of(seq, cfg=SEQ_CFG):
+    cloud = memory.sequence_cloud(jnp.asarray(seq.depth), jnp.asarray(seq.depth_conf),
+                                  jnp.asarray(seq.intrinsic, jnp.float32), jnp.asarray(seq.cam_to_world, jnp.float32),
+                                  jnp.asarray(seq.images), jnp.asarray(~seq.gt.dynamic_mask), cfg)
+    d = jax.vmap(descriptors.image_descriptor)(seq.images, ~seq.gt.dynamic_mask)
+    idx, ok = memory.select_keyframes(d, jnp.ones(len(d), bool), 0.1, cfg.max_keyframes)
+    return cloud, memory.build_entry(cloud, d[idx], ok, cfg)
+
+
+def test_sequence_cloud_and_entry_from_a_render():
+    seq = _room_sequence()
+    cloud, entry = _entry_of(seq)
+    st = SEQ_CFG.pixel_stride
+    assert cloud.points.shape == (6 * 24 * 32, 3)
+    # static, confident pixels only; lifted points agree with the priors' own unprojection
+    dyn = seq.gt.dynamic_mask[:, ::st, ::st].reshape(-1)
+    assert not np.any(np.asarray(cloud.valid) & dyn)
+    from cm3d.ops import camera
+
+    full = np.asarray(camera.unproject(seq.depth, seq.intrinsic, seq.cam_to_world))[:, ::st, ::st].reshape(-1, 3)
+    np.testing.assert_allclose(np.asarray(cloud.points), full, atol=1e-4)
+    # downsampled to capacity, finite, with unit normals and a unit 3D descriptor
+    n = int(entry.point_valid.sum())
+    assert 100 < n <= SEQ_CFG.max_points
+    assert np.all(np.isfinite(np.asarray(entry.points)))
+    norms = np.linalg.norm(np.asarray(entry.normals)[np.asarray(entry.point_valid)], axis=1)
+    assert np.mean(np.abs(norms - 1) < 1e-3) > 0.95
+    assert abs(float(jnp.linalg.norm(entry.cloud_desc)) - 1) < 1e-5
+    assert float(entry.voxel_size) > 0
+
+
+def test_capacity_grows_the_voxel_instead_of_dropping_points():
+    seq = _room_sequence()
+    small = memory.MemoryConfig(max_maps=2, max_points=64, max_keyframes=2, pixel_stride=2, voxel_resolution=200)
+    cloud, entry = _entry_of(seq, small)
+    assert 0 < int(entry.point_valid.sum()) <= 64
+    # the mean of all voxel points still covers the whole cloud (nothing was cut away)
+    pts = np.asarray(cloud.points)[np.asarray(cloud.valid)]
+    lo, hi = pts.min(0), pts.max(0)
+    vox = np.asarray(entry.points)[np.asarray(entry.point_valid)]
+    assert np.all(vox.min(0) < lo + 0.35 * (hi - lo)) and np.all(vox.max(0) > hi - 0.35 * (hi - lo))
+
+
+def test_relocalize_applies_a_similarity_to_poses():
+    from cm3d.ops import se3
+
+    T = np.asarray(se3.exp(jnp.array([0.3, -0.2, 0.5, 0.1, 0.4, -0.2])))
+    S = T.copy()
+    S[:3, :3] *= 2.0  # scale 2
+    cams = np.asarray(se3.exp(jnp.asarray(np.random.default_rng(0).normal(size=(4, 6)) * 0.3, jnp.float32)))
+    out = np.asarray(memory.relocalize(jnp.asarray(S), jnp.asarray(cams)))
+    np.testing.assert_allclose(out[:, :3, :3], T[:3, :3] @ cams[:, :3, :3], atol=1e-5)
+    np.testing.assert_allclose(out[:, :3, 3], cams[:, :3, 3] @ S[:3, :3].T + S[:3, 3], atol=1e-5)
+
+
+def test_update_map_merges_into_the_map_frame():
+    seq = _room_sequence()
+    _, entry = _entry_of(seq)
+    bank, m = memory.add_map(memory.empty(SEQ_CFG), entry)
+    # the same cloud, expressed in a frame 2x larger and shifted: moved back by the transform
+    S = np.diag([2.0, 2.0, 2.0, 1.0])
+    S[:3, 3] = [1.0, -2.0, 0.5]
+    moved = entry.replace(points=entry.points * 2.0 + jnp.array([1.0, -2.0, 0.5]))
+    Sinv = np.linalg.inv(S)
+    merged = memory.update_map(bank, m, moved, jnp.asarray(Sinv, jnp.float32), SEQ_CFG)
+    assert int(merged.visits[m]) == 2
+    a = np.asarray(bank.points[m])[np.asarray(bank.point_valid[m])]
+    b = np.asarray(merged.points[m])[np.asarray(merged.point_valid[m])]
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(a).query(b)
+    assert np.median(d) < 0.5 * float(bank.voxel_size[m])  # merged voxels lie on the old map
+    assert int(merged.point_valid[m].sum()) <= SEQ_CFG.max_points
+    assert int(merged.kf_valid[m].sum()) == min(SEQ_CFG.max_keyframes, 2 * int(entry.kf_valid.sum()))
