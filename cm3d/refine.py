@@ -1,0 +1,279 @@
+"""Host-side mask refinement (seeded segmentation) and mask tracking over a sequence.
+
+The paper prompts SAM2 with points sampled in the dynamic regions and lets it segment and track
+the objects. SAM2's weights cannot be downloaded here, so the same interface is served by real
+seeded segmentations: OpenCV GrabCut (default) or a scikit-image marker watershed. A SAM2-like
+model plugs in as any callable with the :class:`MaskRefiner` signature.
+
+Tracking (:func:`refine_and_track`): the refined mask of frame t-1 is forward-warped to frame t
+with the flow (:func:`cm3d.motion.warp_mask`), kept where frame t's candidate regions still show
+motion, and used as the seed of frame t's refinement; detection (the keypoint-verified robust cue)
+runs again only on frames where the geometry cue shows a candidate region the tracked mask does not
+cover (new motion), and on the first frame. Everything here is numpy / OpenCV / scikit-image,
+outside jit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, Protocol
+
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class RefineHints:
+    """Optional per-frame geometry for a refiner: depth (H, W) prior depth, residual (H, W) px."""
+
+    depth: np.ndarray | None = None
+    residual: np.ndarray | None = None
+
+
+class MaskRefiner(Protocol):
+    """Extension point (SAM2-like): refined mask (H, W) bool from an RGB uint8 image (H, W, 3), a
+    coarse mask (H, W) bool, prompt points (P, 2) int ``(u, v)`` with their region ids (P,), and hints."""
+
+    def __call__(self, image: np.ndarray, coarse: np.ndarray, prompts: np.ndarray, region_ids: np.ndarray,
+                 hints: RefineHints) -> np.ndarray: ...
+
+
+def _disk(r: int) -> np.ndarray:
+    import cv2
+
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+
+
+def _dilate(mask, r):
+    import cv2
+
+    if r <= 0:
+        return mask.astype(bool)
+    return cv2.dilate(mask.astype(np.uint8), _disk(r)).astype(bool)
+
+
+def _erode(mask, r):
+    import cv2
+
+    if r <= 0:
+        return mask.astype(bool)
+    return cv2.erode(mask.astype(np.uint8), _disk(r)).astype(bool)
+
+
+def sample_prompts(mask: np.ndarray, per_region: int = 8, seed: int = 0, min_area: int = 1):
+    """Prompt points sampled uniformly inside each 8-connected region of ``mask``.
+
+    Points come from the region's interior (eroded by 2 px when that leaves anything), at most
+    ``per_region`` per region, without replacement. Returns (points (P, 2) int32 ``(u, v)``,
+    region ids (P,) int32, label image (H, W) int32 with 0 = background).
+    """
+    import cv2
+
+    mask = np.asarray(mask, bool)
+    n, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    rng = np.random.default_rng(seed)
+    pts, ids = [], []
+    inner = _erode(mask, 2)
+    for k in range(1, n):
+        region = labels == k
+        if region.sum() < min_area:
+            continue
+        core = region & inner
+        vv, uu = np.nonzero(core if core.any() else region)
+        take = rng.choice(len(uu), size=min(per_region, len(uu)), replace=False)
+        pts.append(np.stack([uu[take], vv[take]], -1))
+        ids.append(np.full(len(take), k))
+    if not pts:
+        return np.zeros((0, 2), np.int32), np.zeros(0, np.int32), labels.astype(np.int32)
+    return np.concatenate(pts).astype(np.int32), np.concatenate(ids).astype(np.int32), labels.astype(np.int32)
+
+
+def _geometry_image(image, hints: RefineHints) -> np.ndarray:
+    """uint8 3-channel feature image: gray, log depth and residual flow (each stretched to 0..255)."""
+    import cv2
+
+    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    chans = [gray]
+    for a in (hints.depth, hints.residual):
+        if a is None:
+            chans.append(gray)
+            continue
+        a = np.asarray(a, np.float32)
+        if a is hints.depth:
+            a = np.log(np.maximum(a, 1e-6))
+        else:
+            a = np.log1p(np.maximum(a, 0.0))
+        lo, hi = np.percentile(a, [1, 99])
+        chans.append(np.clip((a - lo) / max(hi - lo, 1e-6) * 255.0, 0, 255))
+    return np.ascontiguousarray(np.stack(chans, -1).astype(np.uint8))
+
+
+def _px(value: int, width: int, reference: int) -> int:
+    """A pixel size given for images ``reference`` wide, scaled to ``width`` (at least 1 when > 0)."""
+    return 0 if value <= 0 else max(1, int(round(value * width / reference)))
+
+
+@dataclasses.dataclass(frozen=True)
+class GrabCutRefiner:
+    """OpenCV GrabCut seeded by the coarse mask and the prompts.
+
+    Seeds: definite foreground in disks of ``prompt_radius`` around the prompts and in the coarse
+    mask eroded by ``core_px`` (so a halo of a few pixels around the coarse mask is decided by the
+    colour models); probable foreground in the rest of the coarse mask; probable background in a
+    ``band_px`` ring around it; definite background elsewhere. Pixel sizes are for images
+    ``reference_width`` wide and scale with the width. ``features``: "rgb" segments the colour
+    image (default, best on the benchmark); "geometry" segments (gray, log depth, log residual).
+    """
+
+    iterations: int = 3
+    band_px: int = 8
+    core_px: int = 14
+    prompt_radius: int = 3
+    features: str = "rgb"
+    reference_width: int = 512
+
+    def __call__(self, image, coarse, prompts, region_ids, hints: RefineHints = RefineHints()):
+        import cv2
+
+        coarse = np.asarray(coarse, bool)
+        if not coarse.any():
+            return coarse.copy()
+        W = coarse.shape[1]
+        px = lambda v: _px(v, W, self.reference_width)  # noqa: E731
+        m = np.full(coarse.shape, cv2.GC_BGD, np.uint8)
+        m[_dilate(coarse, px(self.band_px))] = cv2.GC_PR_BGD
+        m[coarse] = cv2.GC_PR_FGD
+        m[_erode(coarse, px(self.core_px))] = cv2.GC_FGD
+        for u, v in np.asarray(prompts).reshape(-1, 2):
+            cv2.circle(m, (int(u), int(v)), px(self.prompt_radius), int(cv2.GC_FGD), -1)
+        if not ((m == cv2.GC_BGD) | (m == cv2.GC_PR_BGD)).any():
+            return coarse.copy()  # nothing to contrast against: the whole frame is foreground
+        img = _geometry_image(image, hints) if self.features == "geometry" else np.ascontiguousarray(image)
+        bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+        try:
+            cv2.grabCut(img, m, None, bgd, fgd, self.iterations, cv2.GC_INIT_WITH_MASK)
+        except cv2.error:
+            return coarse.copy()  # degenerate colour models (e.g. a flat image): keep the seed
+        return (m == cv2.GC_FGD) | (m == cv2.GC_PR_FGD)
+
+
+@dataclasses.dataclass(frozen=True)
+class WatershedRefiner:
+    """scikit-image marker watershed on the gradients of gray, log depth and residual flow.
+
+    Markers: each coarse region's interior (eroded by ``core_px``) plus its prompts, and the
+    background beyond a ``band_px`` ring; the boundary settles on the strongest edges in the ring.
+    """
+
+    band_px: int = 8
+    core_px: int = 4
+    depth_weight: float = 4.0
+    residual_weight: float = 1.0
+
+    def __call__(self, image, coarse, prompts, region_ids, hints: RefineHints = RefineHints()):
+        import cv2
+        from skimage.filters import sobel
+        from skimage.segmentation import watershed
+
+        coarse = np.asarray(coarse, bool)
+        if not coarse.any():
+            return coarse.copy()
+        gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255.0
+        elev = sobel(gray)
+        if hints.depth is not None:
+            elev = elev + self.depth_weight * sobel(np.log(np.maximum(hints.depth, 1e-6)))
+        if hints.residual is not None:
+            elev = elev + self.residual_weight * sobel(np.log1p(np.maximum(hints.residual, 0.0)))
+        n, labels = cv2.connectedComponents(coarse.astype(np.uint8), connectivity=8)
+        markers = np.where(_erode(coarse, self.core_px), labels + 1, 0).astype(np.int32)
+        for (u, v), k in zip(np.asarray(prompts).reshape(-1, 2), np.asarray(region_ids).reshape(-1)):
+            markers[v, u] = k + 1
+        markers[~_dilate(coarse, self.band_px)] = 1
+        if not (markers == 1).any():
+            return coarse.copy()
+        return watershed(elev, markers) > 1
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackConfig:
+    """Tracking options. ``support_px``: a warped mask survives where frame t's candidates are
+    within this distance; ``new_region_frac``: a candidate region (fraction of H*W) outside the
+    tracked mask that triggers re-detection; ``prompts_per_region``; ``seed``."""
+
+    support_px: int = 6
+    grow: bool = True  # also seed with the candidate regions that overlap the tracked mask
+    new_region_frac: float = 1e-3
+    new_region_overlap: float = 0.2
+    prompts_per_region: int = 8
+    seed: int = 0
+
+
+def new_motion(candidates: np.ndarray, tracked: np.ndarray, cfg: TrackConfig = TrackConfig()) -> np.ndarray:
+    """Candidate regions (H, W) bool that the tracked mask does not explain: 8-connected regions of
+    at least ``new_region_frac`` of the frame, less than ``new_region_overlap`` covered by it."""
+    import cv2
+
+    H, W = candidates.shape
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(candidates.astype(np.uint8), connectivity=8)
+    out = np.zeros((H, W), bool)
+    for k in range(1, n):
+        if stats[k, cv2.CC_STAT_AREA] < cfg.new_region_frac * H * W:
+            continue
+        region = labels == k
+        if (region & tracked).sum() < cfg.new_region_overlap * region.sum():
+            out |= region
+    return out
+
+
+def overlapping(candidates: np.ndarray, tracked: np.ndarray) -> np.ndarray:
+    """The 8-connected regions of ``candidates`` (H, W) that touch ``tracked`` (continuing objects)."""
+    import cv2
+
+    n, labels = cv2.connectedComponents(candidates.astype(np.uint8), connectivity=8)
+    hit = np.zeros(n, bool)
+    hit[np.unique(labels[tracked & candidates])] = True
+    hit[0] = False
+    return hit[labels]
+
+
+def refine_and_track(images: np.ndarray, flows: np.ndarray, candidates: np.ndarray,
+                     detect: Callable[[int], np.ndarray], refiner: MaskRefiner | None = None,
+                     depth: np.ndarray | None = None, residual: np.ndarray | None = None,
+                     cfg: TrackConfig = TrackConfig()):
+    """Refined and tracked dynamic masks of frames 0..T-1 (T = len(flows)).
+
+    images (>= T, H, W, 3) uint8; flows (T, H, W, 2) forward flow t -> t+1; candidates (T, H, W)
+    bool geometric candidate regions; ``detect(t)`` returns the detection mask (H, W) of frame t
+    (the keypoint-verified robust cue; called only on frames that need it, so its keypoints can be
+    computed lazily); depth / residual (T, H, W) optional hints for the refiner.
+    Returns (masks (T, H, W) bool, detected (T,) bool: frames where detection ran).
+    """
+    from cm3d.motion import warp_mask
+
+    refiner = refiner or GrabCutRefiner()
+    T = len(flows)
+    H, W = candidates.shape[1:]
+    masks = np.zeros((T, H, W), bool)
+    detected = np.zeros(T, bool)
+    prev = None
+    for t in range(T):
+        cand = np.asarray(candidates[t], bool)
+        if prev is None:
+            seed_mask = np.asarray(detect(t), bool)
+            detected[t] = True
+        else:
+            warped = np.asarray(warp_mask(prev, flows[t - 1]))
+            tracked = warped & _dilate(cand, cfg.support_px)
+            if cfg.grow:
+                tracked = tracked | overlapping(cand, tracked)
+            fresh = new_motion(cand, tracked, cfg)
+            if fresh.any():
+                detected[t] = True
+                seed_mask = tracked | (np.asarray(detect(t), bool) & fresh)
+            else:
+                seed_mask = tracked
+        prompts, ids, _ = sample_prompts(seed_mask, cfg.prompts_per_region, cfg.seed + t)
+        hints = RefineHints(None if depth is None else depth[t], None if residual is None else residual[t])
+        refined = np.asarray(refiner(images[t], seed_mask, prompts, ids, hints), bool)
+        masks[t] = refined
+        prev = refined
+    return masks, detected
