@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cm3d.ops.se3 import inverse
+from cm3d.solvers.align import umeyama  # noqa: F401  (one implementation, re-exported)
 
 _ALIGN_MODES = ("sim3", "se3", "none")
 
@@ -71,36 +72,6 @@ def _weighted_rmse(sq_err: jnp.ndarray, w: jnp.ndarray) -> jnp.ndarray:
     safe = mse > 0
     rmse = jnp.where(safe, jnp.sqrt(jnp.where(safe, mse, 1.0)), 0.0)
     return jnp.where(ok, rmse, jnp.nan)
-
-
-def umeyama(src, dst, weights=None, with_scale: bool = True):
-    """Least-squares similarity ``dst ≈ s R src + t`` (Umeyama 1991, reflection-safe).
-
-    src, dst: (N, 3); weights: None, or (N,) non-negative weights / boolean valid mask.
-    Returns (s scalar, R (3, 3), t (3,)); ``s = 1`` when ``with_scale`` is False. With a 0/1 mask this
-    equals evo's ``umeyama_alignment`` on the valid points. Degenerate inputs (fewer than 3 non-collinear
-    valid points) are not detected.
-    """
-    src = jnp.asarray(src)
-    dst = jnp.asarray(dst, dtype=src.dtype)
-    w = _weights(src.shape[0], weights, src.dtype)
-    w = w / jnp.maximum(jnp.sum(w), jnp.finfo(src.dtype).tiny)
-    mu_s = jnp.sum(w[:, None] * src, axis=0)
-    mu_d = jnp.sum(w[:, None] * dst, axis=0)
-    xs = src - mu_s
-    xd = dst - mu_d
-    var_s = jnp.sum(w * jnp.sum(xs * xs, axis=-1))
-    cov = jnp.einsum("n,ni,nj->ij", w, xd, xs)
-    U, D, Vt = jnp.linalg.svd(cov)
-    sign = jnp.where(jnp.linalg.det(U) * jnp.linalg.det(Vt) < 0, -1.0, 1.0).astype(src.dtype)
-    S = jnp.array([1.0, 1.0, 0.0], src.dtype) + jnp.array([0.0, 0.0, 1.0], src.dtype) * sign
-    R = (U * S[None, :]) @ Vt
-    if with_scale:
-        s = jnp.sum(D * S) / var_s
-    else:
-        s = jnp.ones((), src.dtype)
-    t = mu_d - s * (R @ mu_s)
-    return s, R, t
 
 
 def align_trajectory(est_c2w, gt_c2w, mode: str = "sim3", valid=None):

@@ -1,0 +1,628 @@
+"""Neighbour search on static point clouds in JAX: a cached target index, exact radius search,
+k-nearest-neighbour graph, PCA normals and the warm-started graph walk used by ICP.
+
+:func:`build_target_index` builds, once per target cloud (jit, fixed capacities):
+
+* a *coarse* grid whose cell is the index ``radius`` (the largest correspondence distance it
+  serves): the target is sorted so that each coarse cell is a contiguous range; an exact nearest
+  neighbour within ``r <= radius`` is among the 27 coarse cells around the query
+  (:func:`nearest_within_radius`);
+* a *fine* grid nested in it (cell ``radius / sub``, ``sub`` chosen from the point density so a cell
+  holds about ``points_per_cell`` points) from which each point's k nearest neighbours are taken
+  among the points of its 27 fine cells;
+* the k-NN graph (self first), the coordinates of each point's neighbours laid out as one row
+  ``(3, k)`` (a walk step is one row gather, XLA's fastest), PCA normals, and a *certified radius*
+  ``rho``: every target point closer than ``rho[i]`` to point ``i`` is in its neighbour list.
+
+The ICP correspondence search is a walk on the graph: a source point keeps its current match ``m``
+and moves it to the closest of ``m``'s neighbours. When the walk stops at ``m`` with distance ``d``
+and ``2 d < rho[m]``, ``m`` is provably the exact nearest neighbour (any closer point would lie within
+``2 d`` of ``m``, hence in its list); :func:`certified_nearest` checks that and runs the exact grid
+search only for the remaining queries.
+
+All positions returned by the walk are *sorted* positions into ``index.points``; ``index.order``
+maps them back to the caller's point indices.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+from jax import lax
+
+from cm3d.ops.voxel import (
+    EMPTY,
+    CellHash,
+    cell_coords,
+    hash_insert,
+    hash_lookup,
+    masked_bounds,
+    valid_points,
+)
+
+# The 27 cell offsets, nearest first (centre, 6 faces, 12 edges, 8 corners).
+OFFSETS27 = np.array(sorted(itertools.product((-1, 0, 1), repeat=3), key=lambda o: (sum(map(abs, o)), o)),
+                     np.int32)
+_MAX_SUB = 16
+
+
+@struct.dataclass
+class TargetIndex:
+    """Everything ICP needs about a static target cloud, cached with a memory entry (a pytree).
+
+    Sorted order (``M`` = capacity of the input cloud):
+      points (M, 3), normals (M, 3) (zero where undefined), valid (M,), order (M,) input index of
+      each sorted point, graph (M, k) sorted positions of the k nearest (self first), graph_pts
+      (M, 3, k) their coordinates, rho (M,) certified radius of each list.
+    Coarse grid (cell = ``radius``): coarse (CellHash), cell_start / cell_count / cell_seed (H,)
+      per hash slot: first sorted position, number of points, the point nearest the cell centre.
+    Fine grid (cell = ``fine_cell``, nested): fine (CellHash), fine_start / fine_count per slot.
+    origin (3,), sub () int32 fine cells per coarse cell, fine_cell () metres.
+    overflow () int32: hash keys that did not fit (0 in practice; results are not exact otherwise);
+    truncated () int32: points whose k-NN candidates exceeded ``max_candidates`` (rho = 0 there).
+    Static: radius (metres), k.
+    """
+
+    points: jnp.ndarray
+    normals: jnp.ndarray
+    valid: jnp.ndarray
+    order: jnp.ndarray
+    graph: jnp.ndarray
+    graph_pts: jnp.ndarray
+    rho: jnp.ndarray
+    coarse: CellHash
+    cell_start: jnp.ndarray
+    cell_count: jnp.ndarray
+    cell_seed: jnp.ndarray
+    fine: CellHash
+    fine_start: jnp.ndarray
+    fine_count: jnp.ndarray
+    origin: jnp.ndarray
+    sub: jnp.ndarray
+    fine_cell: jnp.ndarray
+    overflow: jnp.ndarray
+    truncated: jnp.ndarray
+    radius: float = struct.field(pytree_node=False, default=0.0)
+    k: int = struct.field(pytree_node=False, default=16)
+
+    @property
+    def num_valid(self):
+        return jnp.sum(self.valid)
+
+
+# ----------------------------------------------------------------------------------------------
+# Small helpers
+# ----------------------------------------------------------------------------------------------
+
+
+def _smallest_eigvec(cov: jnp.ndarray) -> jnp.ndarray:
+    """Unit eigenvector of the smallest eigenvalue of symmetric PSD (..., 3, 3), closed form.
+
+    Eigenvalues by the trigonometric formula (Smith 1961) on the scaled matrix, the vector as the
+    longest cross product of two rows of ``A - lambda I`` (what Open3D's ``FastEigen3x3`` does).
+    Zero where ``cov`` is zero.
+    """
+    scale = jnp.max(jnp.abs(cov), axis=(-2, -1))
+    ok = scale > 0
+    a = cov / jnp.where(ok, scale, 1.0)[..., None, None]
+    a00, a11, a22 = a[..., 0, 0], a[..., 1, 1], a[..., 2, 2]
+    a01, a02, a12 = a[..., 0, 1], a[..., 0, 2], a[..., 1, 2]
+    q = (a00 + a11 + a22) / 3.0
+    p1 = a01**2 + a02**2 + a12**2
+    p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * p1
+    p = jnp.sqrt(jnp.maximum(p2, 0.0) / 6.0)
+    ps = jnp.where(p > 0, p, 1.0)
+    b = (a - q[..., None, None] * jnp.eye(3, dtype=a.dtype)) / ps[..., None, None]
+    r = jnp.clip(jnp.linalg.det(b) / 2.0, -1.0, 1.0)
+    phi = jnp.arccos(r) / 3.0
+    lam = q + 2.0 * p * jnp.cos(phi + 2.0 * jnp.pi / 3.0)  # smallest eigenvalue
+    m = a - lam[..., None, None] * jnp.eye(3, dtype=a.dtype)
+    r0, r1, r2 = m[..., 0, :], m[..., 1, :], m[..., 2, :]
+    c = jnp.stack([jnp.cross(r0, r1), jnp.cross(r0, r2), jnp.cross(r1, r2)], axis=-2)
+    nc = jnp.sum(c * c, axis=-1)
+    best = jnp.argmax(nc, axis=-1)
+    v = jnp.take_along_axis(c, best[..., None, None], axis=-2)[..., 0, :]
+    nv = jnp.sqrt(jnp.take_along_axis(nc, best[..., None], axis=-1)[..., 0])
+    good = ok & (nv > 1e-12) & (p > 0)
+    return jnp.where(good[..., None], v / jnp.where(good, nv, 1.0)[..., None], 0.0)
+
+
+def pca_normals(nbp: jnp.ndarray, mask: jnp.ndarray) -> jnp.ndarray:
+    """Local-PCA normals (n, 3) of neighbourhoods nbp (n, k, 3) with mask (n, k): the eigenvector
+    of the smallest eigenvalue of the (biased) covariance, as Open3D's ``estimate_normals``; unit
+    length up to sign, zero where fewer than 3 points are masked in."""
+    w = mask.astype(nbp.dtype)
+    cnt = jnp.sum(w, axis=1)
+    wsum = jnp.maximum(cnt, 1.0)
+    mu = jnp.sum(nbp * w[..., None], axis=1) / wsum[:, None]
+    xc = (nbp - mu[:, None]) * w[..., None]
+    cov = jnp.einsum("nki,nkj->nij", xc, nbp - mu[:, None]) / wsum[:, None, None]
+    return jnp.where((cnt >= 3)[:, None], _smallest_eigvec(cov), 0.0)
+
+
+def _fine_keys(index_or_origin, q, fine_cell, sub):
+    fk = cell_coords(q, index_or_origin, fine_cell)
+    return fk, jnp.floor_divide(fk, sub)
+
+
+def compact_apply(mask: jnp.ndarray, fn, init, chunk: int = 512):
+    """Run ``fn(idx, ok)`` on the indices where ``mask`` (n,) in chunks; write results into ``init``.
+
+    fn gets ``idx`` (chunk,) int32 (clipped) and ``ok`` (chunk,) bool and returns a pytree of
+    (chunk, ...) arrays, scattered into the matching leaves of ``init`` (n, ...) at ``idx``. The loop
+    runs ``ceil(sum(mask) / chunk)`` times (a ``while_loop``), so the cost follows the number of
+    selected items while all shapes stay fixed.
+    """
+    n = mask.shape[0]
+    chunk = max(1, min(chunk, n))
+    nch = -(-n // chunk)
+    (idx,) = jnp.nonzero(mask, size=nch * chunk, fill_value=n)
+    count = jnp.sum(mask)
+
+    def cond(c):
+        return c[0] * chunk < count
+
+    def body(c):
+        it, out = c
+        sl = lax.dynamic_slice(idx, (it * chunk,), (chunk,))
+        ok = sl < n
+        vals = fn(jnp.clip(sl, 0, n - 1), ok)
+        dst = jnp.where(ok, sl, n)
+        out = jax.tree.map(lambda o, v: o.at[dst].set(v, mode="drop"), out, vals)
+        return it + 1, out
+
+    if n == 0:
+        return init
+    return lax.while_loop(cond, body, (jnp.int32(0), init))[1]
+
+
+def _gather_candidates(h: CellHash, start, count, key, j):
+    """First ``len(j)`` points (sorted positions) of the 27 cells around int keys (B, 3)
+    -> (cand (B, C), valid (B, C), total (B,) number of points in the 27 cells)."""
+    nb = hash_lookup(h, key[:, None, :] + jnp.asarray(OFFSETS27)[None])  # (B, 27)
+    nbc = jnp.clip(nb, 0, h.size - 1)
+    cnt = jnp.where(nb >= 0, count[nbc], 0)
+    st = start[nbc]
+    cum = jnp.cumsum(cnt, axis=1)
+    total = cum[:, -1]
+    cellidx = jnp.zeros((key.shape[0], j.shape[0]), jnp.int32)
+    for c in range(26):
+        cellidx = cellidx + (cum[:, c : c + 1] <= j[None, :])
+    excl = jnp.take_along_axis(cum - cnt, cellidx, axis=1)
+    cand = jnp.take_along_axis(st, cellidx, axis=1) + j[None, :] - excl
+    valid = j[None, :] < total[:, None]
+    return jnp.where(valid, cand, 0), valid, total
+
+
+# ----------------------------------------------------------------------------------------------
+# Build
+# ----------------------------------------------------------------------------------------------
+
+
+def build_target_index(points, valid=None, *, radius: float, k: int = 16, cell_factor: float = 0.7,
+                       max_candidates: int = 64) -> TargetIndex:
+    """Build the :class:`TargetIndex` of a cloud (n, 3) (valid: optional (n,) mask), jittable.
+
+    radius: static, metres: the coarse cell, i.e. the largest max-correspondence distance and
+    exact-search radius the index serves. k: static graph degree (>= 2, self included).
+    cell_factor: fine cell / estimated k-NN radius (density from the coarse occupancy);
+    max_candidates: static cap of the k-NN candidates per point (>= k; points over it get
+    ``rho = 0`` and an approximate list, counted in ``truncated``).
+    """
+    points = jnp.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be (n, 3), got {points.shape}")
+    if not radius > 0:
+        raise ValueError(f"radius must be > 0, got {radius}")
+    if k < 2:
+        raise ValueError(f"k must be >= 2, got {k}")
+    C = max(int(max_candidates), k)
+    n = points.shape[0]
+    dtype = points.dtype
+    ok = valid_points(points, valid)
+    if n == 0:
+        return _empty_index(dtype, float(radius), k)
+    lo, _ = masked_bounds(points, ok)
+    origin = lo - 0.5 * radius
+
+    # Density -> fine cell h ~ the k-NN radius of a surface sampled at that density; the coarse
+    # cell is the multiple sub * h >= radius (fine cells nest in coarse ones).
+    hc0, _ = hash_insert(cell_coords(points, origin, radius), ok)
+    ncells = jnp.maximum(jnp.sum(hc0.slot_item != EMPTY), 1)
+    nbar = jnp.maximum(jnp.sum(ok) / ncells, 1.0)
+    sigma = nbar / (1.3 * radius**2)  # points per m^2 of surface
+    rk = jnp.sqrt(k / (jnp.pi * sigma)) * cell_factor
+    h = jnp.clip(rk, radius / _MAX_SUB, radius).astype(dtype)
+    sub = jnp.ceil(radius / h).astype(jnp.int32)
+    h = jnp.where(sub * h < radius, h * (1 + 1e-6), h)
+    fk, ck = _fine_keys(origin, points, h, sub)
+    hf, fslot = hash_insert(fk, ok)
+    hc, cslot = hash_insert(ck, ok)
+
+    # Sort: coarse cell, then fine cell (nested), invalid points last.
+    big = jnp.int32(np.iinfo(np.int32).max)
+    ks1 = jnp.where(ok, cslot, big)
+    ks2 = jnp.where(ok, fslot, big)
+    _, _, order = lax.sort((ks1, ks2, jnp.arange(n, dtype=jnp.int32)), num_keys=2)
+    sp = points[order]
+    sval = ok[order]
+    pos = jnp.arange(n, dtype=jnp.int32)
+    fs, cs = fslot[order], cslot[order]
+    fine_start = jnp.full((hf.size,), n, jnp.int32).at[jnp.where(sval, fs, hf.size)].min(pos, mode="drop")
+    fine_count = jnp.zeros((hf.size,), jnp.int32).at[jnp.where(sval, fs, hf.size)].add(1, mode="drop")
+    cell_start = jnp.full((hc.size,), n, jnp.int32).at[jnp.where(sval, cs, hc.size)].min(pos, mode="drop")
+    cell_count = jnp.zeros((hc.size,), jnp.int32).at[jnp.where(sval, cs, hc.size)].add(1, mode="drop")
+    # Seed of a coarse cell: its point nearest to the cell centre.
+    cks = ck[order]
+    centre = origin + (cks.astype(dtype) + 0.5) * (h * sub)
+    dc = jnp.sum((sp - centre) ** 2, axis=-1)
+    big_f = jnp.asarray(np.finfo(np.float32).max, dtype)
+    cmin = jnp.full((hc.size,), big_f, dtype).at[jnp.where(sval, cs, hc.size)].min(dc, mode="drop")
+    is_best = sval & (dc <= cmin[jnp.clip(cs, 0, hc.size - 1)])
+    cell_seed = jnp.full((hc.size,), n, jnp.int32).at[jnp.where(is_best, cs, hc.size)].min(pos, mode="drop")
+    cell_seed = jnp.where(cell_seed < n, cell_seed, -1)
+
+    # k-NN candidates, per occupied fine cell (a chunked loop over the cells that exist): the
+    # points of its 27 fine cells, the first C of them.
+    occupied = hf.slot_item != EMPTY
+    (ucell,) = jnp.nonzero(occupied, size=n, fill_value=hf.size)
+    ucount = jnp.sum(occupied)
+    slot_to_u = jnp.zeros((hf.size,), jnp.int32).at[ucell].set(pos, mode="drop")
+    j = jnp.arange(C, dtype=jnp.int32)
+
+    def cell_candidates(i, _ok):
+        key = hf.slot_key[jnp.clip(ucell[i], 0, hf.size - 1)]
+        cand, cvalid, total = _gather_candidates(hf, fine_start, fine_count, key, j)
+        return cand, total
+
+    ctab, ctot = compact_apply(pos < ucount, cell_candidates,
+                               (jnp.zeros((n, C), jnp.int32), jnp.zeros((n,), jnp.int32)), chunk=1024)
+    u = slot_to_u[jnp.clip(fs, 0, hf.size - 1)]
+    cand = ctab[u]
+    total = jnp.where(sval, ctot[u], 0)
+    cvalid = j[None, :] < total[:, None]
+    cand = jnp.where(cvalid, cand, pos[:, None])
+    diff = sp[cand] - sp[:, None, :]
+    d2 = jnp.where(cvalid, jnp.sum(diff * diff, axis=-1), jnp.inf)
+    neg, a = lax.top_k(-d2, k)
+    graph = jnp.take_along_axis(cand, a, 1)
+    d2k = -neg
+    has = jnp.isfinite(d2k)
+    graph = jnp.where(has, graph, pos[:, None])
+    dk = jnp.sqrt(jnp.where(has[:, -1], d2k[:, -1], jnp.inf))
+    truncated = sval & (total > C)
+    rho = jnp.where(truncated | ~sval, 0.0, jnp.minimum(dk, h))
+
+    # PCA normals over the neighbour list (self included), as Open3D's estimate_normals.
+    nbp = sp[graph]  # (n, k, 3)
+    normals = jnp.where(sval[:, None], pca_normals(nbp, has), 0.0)
+
+    overflow = hc0.overflow + hf.overflow + hc.overflow
+    return TargetIndex(points=sp, normals=normals, valid=sval, order=order, graph=graph.astype(jnp.int32),
+                       graph_pts=jnp.transpose(nbp, (0, 2, 1)), rho=rho, coarse=hc, cell_start=cell_start,
+                       cell_count=cell_count, cell_seed=cell_seed, fine=hf, fine_start=fine_start,
+                       fine_count=fine_count, origin=origin, sub=sub, fine_cell=h,
+                       overflow=overflow.astype(jnp.int32), truncated=jnp.sum(truncated).astype(jnp.int32),
+                       radius=float(radius), k=int(k))
+
+
+def _empty_index(dtype, radius: float, k: int) -> TargetIndex:
+    z = jnp.zeros
+    hc = CellHash(slot_item=jnp.full((2,), EMPTY, jnp.int32), slot_key=z((2, 3), jnp.int32),
+                  max_probe=jnp.int32(0), overflow=jnp.int32(0))
+    return TargetIndex(points=z((0, 3), dtype), normals=z((0, 3), dtype), valid=z((0,), bool),
+                       order=z((0,), jnp.int32), graph=z((0, k), jnp.int32), graph_pts=z((0, 3, k), dtype),
+                       rho=z((0,), dtype), coarse=hc, cell_start=z((2,), jnp.int32), cell_count=z((2,), jnp.int32),
+                       cell_seed=jnp.full((2,), -1, jnp.int32), fine=hc, fine_start=z((2,), jnp.int32),
+                       fine_count=z((2,), jnp.int32), origin=z((3,), dtype), sub=jnp.int32(1),
+                       fine_cell=jnp.asarray(radius, dtype), overflow=jnp.int32(0), truncated=jnp.int32(0),
+                       radius=radius, k=k)
+
+
+# ----------------------------------------------------------------------------------------------
+# Queries
+# ----------------------------------------------------------------------------------------------
+
+
+def _coarse_key(index: TargetIndex, q):
+    return _fine_keys(index.origin, q, index.fine_cell, index.sub)[1]
+
+
+def _exact_chunk(index: TargetIndex, q, radius, width: int = 128):
+    """Exact nearest within ``radius`` for queries q (B, 3) -> (pos (B,) or -1, squared dist (B,)).
+
+    The candidates are the points of the 27 coarse cells around each query, taken ``width`` at a
+    time (a while loop over passes, as many as the most crowded query needs).
+    """
+    B = q.shape[0]
+    ck = _coarse_key(index, q)
+    r2 = jnp.asarray(radius, q.dtype) ** 2
+    j0 = jnp.arange(width, dtype=jnp.int32)
+    _, _, total = _gather_candidates(index.coarse, index.cell_start, index.cell_count, ck, j0[:1])
+
+    def cond(c):
+        return c[0] * width < jnp.max(total, initial=0)
+
+    def body(c):
+        t, best, bd = c
+        cand, ok, _ = _gather_candidates(index.coarse, index.cell_start, index.cell_count, ck, t * width + j0)
+        diff = index.points[cand] - q[:, None, :]
+        d2 = jnp.where(ok, jnp.sum(diff * diff, axis=-1), jnp.inf)
+        a = jnp.argmin(d2, axis=1)
+        dmin = jnp.take_along_axis(d2, a[:, None], 1)[:, 0]
+        pmin = jnp.take_along_axis(cand, a[:, None], 1)[:, 0]
+        better = (dmin < bd) | ((dmin == bd) & (pmin < best))
+        return t + 1, jnp.where(better, pmin, best), jnp.where(better, dmin, bd)
+
+    init = (jnp.int32(0), jnp.full((B,), -1, jnp.int32), jnp.full((B,), jnp.inf, q.dtype))
+    _, best, bd = lax.while_loop(cond, body, init)
+    inside = bd <= r2
+    return jnp.where(inside, best, -1), jnp.where(inside, bd, jnp.inf)
+
+
+def _fine_chunk(index: TargetIndex, q, width: int = 128):
+    """Nearest among the first ``width`` points of the 27 *fine* cells around queries q (B, 3)
+    -> (pos (B,) or -1, squared distance (B,), complete (B,): all points of the 27 cells were seen,
+    so the answer is exact for a query whose nearest neighbour is within one fine cell)."""
+    fk = cell_coords(q, index.origin, index.fine_cell)
+    cand, ok, total = _gather_candidates(index.fine, index.fine_start, index.fine_count, fk,
+                                         jnp.arange(width, dtype=jnp.int32))
+    d2 = jnp.where(ok, jnp.sum((index.points[cand] - q[:, None, :]) ** 2, axis=-1), jnp.inf)
+    a = jnp.argmin(d2, axis=1)
+    dmin = jnp.take_along_axis(d2, a[:, None], 1)[:, 0]
+    has = jnp.isfinite(dmin)
+    return jnp.where(has, jnp.take_along_axis(cand, a[:, None], 1)[:, 0], -1), dmin, total <= width
+
+
+def _check_radius(index: TargetIndex, radius):
+    if radius is None:
+        return index.radius
+    if isinstance(radius, (int, float)) and radius > index.radius * (1 + 1e-6):
+        raise ValueError(f"radius {radius} exceeds the index radius {index.radius}; rebuild the index")
+    return jnp.minimum(jnp.asarray(radius), index.radius)
+
+
+def nearest_within_radius(index: TargetIndex, queries, radius=None, valid=None, chunk: int = 512):
+    """Exact nearest target point within ``radius`` (<= index.radius) of each query (q, 3).
+
+    Returns (idx (q,) int32 input index of the target point or -1, dist (q,) metres or inf): the
+    answer of a KD-tree (ties to the smaller sorted position). valid: optional (q,) query mask.
+    """
+    radius = _check_radius(index, radius)
+    q = jnp.asarray(queries, index.points.dtype)
+    m = valid_points(q, valid)
+    if index.points.shape[0] == 0:
+        return jnp.full(q.shape[:1], -1, jnp.int32), jnp.full(q.shape[:1], jnp.inf, q.dtype)
+    init = (jnp.full(q.shape[:1], -1, jnp.int32), jnp.full(q.shape[:1], jnp.inf, q.dtype))
+    pos, d2 = compact_apply(m, lambda i, ok: _exact_chunk(index, q[i], radius), init, chunk)
+    idx = jnp.where(pos >= 0, index.order[jnp.clip(pos, 0)], -1)
+    return idx, jnp.sqrt(d2)
+
+
+def seed(index: TargetIndex, q, active, chunk: int = 512):
+    """Initial matches (sorted positions, (N,)) for queries q (N, 3): the seed of the query's coarse
+    cell, or for queries in an empty cell the nearest seed of the 26 cells around (-1 if none)."""
+    ck = _coarse_key(index, q)
+    s = hash_lookup(index.coarse, ck)
+    m = jnp.where(s >= 0, index.cell_seed[jnp.clip(s, 0, index.coarse.size - 1)], -1)
+
+    def around(i, ok):
+        qq = q[i]
+        sl = hash_lookup(index.coarse, _coarse_key(index, qq)[:, None, :] + jnp.asarray(OFFSETS27)[None])
+        cand = jnp.where(sl >= 0, index.cell_seed[jnp.clip(sl, 0, index.coarse.size - 1)], -1)
+        d2 = jnp.where(cand >= 0, jnp.sum((index.points[jnp.clip(cand, 0)] - qq[:, None]) ** 2, -1), jnp.inf)
+        a = jnp.argmin(d2, axis=1)
+        return jnp.where(jnp.isfinite(jnp.min(d2, axis=1)), jnp.take_along_axis(cand, a[:, None], 1)[:, 0], -1)
+
+    return compact_apply(active & (m < 0), around, m, chunk)
+
+
+def walk(index: TargetIndex, q, m):
+    """One walk step: move each match m (N,) (sorted positions, -1 = none) to the closest of its
+    graph neighbours to q (N, 3) -> (new m, squared distance (N,), changed (N,))."""
+    mc = jnp.clip(m, 0)
+    c = index.graph_pts[mc]  # (N, 3, k)
+    diff = c - q[:, :, None]
+    d2 = jnp.sum(diff * diff, axis=1)
+    a = jnp.argmin(d2, axis=1)
+    new = jnp.take_along_axis(index.graph[mc], a[:, None], 1)[:, 0]
+    dm = jnp.take_along_axis(d2, a[:, None], 1)[:, 0]
+    has = m >= 0
+    return jnp.where(has, new, -1), jnp.where(has, dm, jnp.inf), has & (new != m)
+
+
+def walk_to_convergence(index: TargetIndex, q, m, max_steps: int = 16):
+    """Walk steps until no match moves (at most ``max_steps``) -> (m, squared distance)."""
+
+    def cond(c):
+        return (c[3] < max_steps) & c[2]
+
+    def body(c):
+        m, _, _, it = c
+        m2, d2, ch = walk(index, q, m)
+        return m2, d2, jnp.any(ch), it + 1
+
+    m, d2, _ = walk(index, q, m)[:3]
+    m, d2, _, _ = lax.while_loop(cond, body, (m, d2, jnp.bool_(True), jnp.int32(1)))
+    return m, d2
+
+
+def certified_nearest(index: TargetIndex, q, m, d2, active, radius, chunk: int = 512):
+    """Exact nearest within ``radius`` given walk matches (m, d2): keep a match when the graph
+    certifies it (``2 d < rho[m]``: m is the nearest; or ``d + radius < rho[m]`` with ``d > radius``:
+    nothing within radius), search the rest exactly: the 27 fine cells when the walk distance is
+    below the fine cell (and they are not crowded), else the 27 coarse cells.
+    -> (pos (N,) sorted position or -1, squared distance (N,) or inf, number searched exactly)."""
+    mc = jnp.clip(m, 0)
+    rho = jnp.where(m >= 0, index.rho[mc], 0.0)
+    d = jnp.sqrt(d2)
+    sure_in = d < 0.5 * rho
+    sure_out = (d > radius) & (d + radius < rho)
+    need = active & ~(sure_in | sure_out)
+    inside = active & sure_in & (d <= radius)
+    pos = jnp.where(inside, m, -1)
+    dist2 = jnp.where(inside, d2, jnp.inf)
+    if index.points.shape[0] == 0:
+        return pos, dist2, jnp.int32(0)
+    # A walk distance d <= fine cell bounds the nearest distance, so the 27 fine cells around the
+    # query hold the nearest point (~k candidates); the rest searches the 27 coarse cells.
+    r2 = jnp.asarray(radius, q.dtype) ** 2
+    near = need & (d <= index.fine_cell)
+
+    def fine(i, ok):
+        p, dd, complete = _fine_chunk(index, q[i])
+        inside = dd <= r2
+        return jnp.where(inside, p, -1), jnp.where(inside, dd, jnp.inf), complete
+
+    pos, dist2, complete = compact_apply(near, fine, (pos, dist2, jnp.zeros_like(need)), chunk)
+    coarse = need & ~(near & complete)
+    pos, dist2 = compact_apply(coarse, lambda i, ok: _exact_chunk(index, q[i], radius), (pos, dist2), chunk)
+    return pos, dist2, jnp.sum(need).astype(jnp.int32)
+
+
+# ----------------------------------------------------------------------------------------------
+# Convenience on plain clouds
+# ----------------------------------------------------------------------------------------------
+
+
+def knn_graph(index: TargetIndex):
+    """The k-NN graph in input indices -> (nbr (n, k) input index per input point, exact (n,) bool:
+    the list is the exact k nearest, i.e. its k-th distance is below the certified radius)."""
+    n = index.points.shape[0]
+    inv = jnp.zeros((n,), jnp.int32).at[index.order].set(jnp.arange(n, dtype=jnp.int32))
+    g = index.order[index.graph][inv]
+    dk = jnp.sqrt(jnp.sum((index.graph_pts[:, :, -1] - index.points) ** 2, axis=-1))
+    full = index.graph[:, -1] != jnp.arange(n, dtype=jnp.int32)  # k found (padding repeats self)
+    exact = (index.valid & full & (dk <= index.rho))[inv]
+    return g, exact
+
+
+@struct.dataclass
+class RadiusNeighbors:
+    """The nearest neighbours within a radius of every point of a cloud (itself excluded).
+
+    idx: (n, K) int32 input indices, ascending distance, -1 padding; dist2: (n, K) squared
+    distances (inf padding); count: (n,) neighbours found (<= K, the ``K`` nearest when more lie
+    within the radius); truncated: () int32 points whose 27 grid cells held more than
+    ``max_candidates`` points (their list may miss the farthest neighbours).
+    """
+
+    idx: jnp.ndarray
+    dist2: jnp.ndarray
+    count: jnp.ndarray
+    truncated: jnp.ndarray
+
+
+@struct.dataclass
+class Grid:
+    """A cloud bucketed by a uniform grid (cell may be traced): the hash of occupied cells, the
+    points sorted by cell (``order`` (n,) input index per sorted position) and each hash slot's
+    ``start`` / ``count`` range. points (n, 3) and valid (n,) are the caller's (input order)."""
+
+    points: jnp.ndarray
+    valid: jnp.ndarray
+    hash: CellHash
+    order: jnp.ndarray
+    start: jnp.ndarray
+    count: jnp.ndarray
+    origin: jnp.ndarray
+    cell: jnp.ndarray
+
+
+def build_grid(points, valid=None, *, cell) -> Grid:
+    """:class:`Grid` of points (n, 3) (valid: optional mask; non-finite points are dropped) with
+    cubic cells of side ``cell`` (> 0, may be traced; a bad cell leaves the grid empty)."""
+    points = jnp.asarray(points)
+    n, dtype = points.shape[0], points.dtype
+    c = jnp.asarray(cell, dtype)
+    ok_c = jnp.isfinite(c) & (c > 0)
+    ok = valid_points(points, valid) & ok_c
+    c = jnp.where(ok_c, c, 1.0)
+    lo, _ = masked_bounds(points, ok)
+    h, slot = hash_insert(cell_coords(points, lo, c), ok)
+    big = jnp.int32(np.iinfo(np.int32).max)
+    sslot, order = lax.sort((jnp.where(ok, slot, big), jnp.arange(n, dtype=jnp.int32)), num_keys=1)
+    pos = jnp.arange(n, dtype=jnp.int32)
+    dst = jnp.where(sslot < h.size, sslot, h.size)
+    start = jnp.full((h.size,), n, jnp.int32).at[dst].min(pos, mode="drop")
+    count = jnp.zeros((h.size,), jnp.int32).at[dst].add(1, mode="drop")
+    return Grid(points=points, valid=ok, hash=h, order=order, start=start, count=count, origin=lo, cell=c)
+
+
+def grid_candidates(grid: Grid, q, max_candidates: int):
+    """The first ``max_candidates`` grid points (input indices) of the 27 cells around queries
+    q (B, 3), nearest cells first -> (idx (B, C), valid (B, C), total (B,) points in the 27 cells).
+    Every point within one cell of a query is among them unless ``total > max_candidates``."""
+    keys = cell_coords(q, grid.origin, grid.cell)
+    cand, ok, total = _gather_candidates(grid.hash, grid.start, grid.count, keys,
+                                         jnp.arange(max_candidates, dtype=jnp.int32))
+    return grid.order[cand], ok, total
+
+
+def grid_nearest(grid: Grid, q, radius, max_candidates: int = 64):
+    """Nearest grid point within ``radius`` (<= the cell) of queries q (B, 3) among their
+    :func:`grid_candidates` -> (idx (B,) input index or -1, squared distance (B,) or inf). Exact
+    unless a query's 27 cells hold more than ``max_candidates`` points (then approximate)."""
+    ci, ok, _ = grid_candidates(grid, q, max_candidates)
+    d2 = jnp.where(ok, jnp.sum((grid.points[ci] - q[:, None, :]) ** 2, -1), jnp.inf)
+    a = jnp.argmin(d2, axis=1)
+    dm = jnp.take_along_axis(d2, a[:, None], 1)[:, 0]
+    inside = dm <= jnp.asarray(radius, q.dtype) ** 2
+    return jnp.where(inside, jnp.take_along_axis(ci, a[:, None], 1)[:, 0], -1), jnp.where(inside, dm, jnp.inf)
+
+
+def radius_neighbors(points, valid=None, *, radius, max_nn: int = 64, max_candidates: int = 512,
+                     chunk: int = 1024) -> RadiusNeighbors:
+    """Up to ``max_nn`` nearest neighbours within ``radius`` of each point of a cloud (n, 3), as
+    Open3D's ``KDTreeSearchParamHybrid(radius, max_nn + 1)`` without the point itself.
+
+    A :class:`Grid` of cell ``radius`` (may be traced); a point's candidates are the first
+    ``max_candidates`` points of its 27 cells, nearest cells first (both static). Invalid (masked
+    or non-finite) points have no neighbours and are nobody's neighbour; a non-positive radius
+    gives none.
+    """
+    points = jnp.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be (n, 3), got {points.shape}")
+    K, C = int(max_nn), int(max_candidates)
+    if not 1 <= K <= C:
+        raise ValueError(f"need 1 <= max_nn <= max_candidates, got {max_nn}, {max_candidates}")
+    n, dtype = points.shape[0], points.dtype
+    if n == 0:
+        return RadiusNeighbors(idx=jnp.zeros((0, K), jnp.int32), dist2=jnp.zeros((0, K), dtype),
+                               count=jnp.zeros((0,), jnp.int32), truncated=jnp.int32(0))
+    grid = build_grid(points, valid, cell=radius)
+    r2 = jnp.asarray(radius, dtype) ** 2
+
+    def fn(i, _ok):
+        ci, cvalid, total = grid_candidates(grid, points[i], C)
+        d2 = jnp.sum((points[ci] - points[i][:, None, :]) ** 2, axis=-1)
+        m = cvalid & (ci != i[:, None]) & (d2 <= r2)
+        neg, a = lax.top_k(jnp.where(m, -d2, -jnp.inf), K)  # top_k: fast to compile and run here
+        return jnp.take_along_axis(ci, a, 1), -neg, total > C
+
+    init = (jnp.full((n, K), -1, jnp.int32), jnp.full((n, K), jnp.inf, dtype), jnp.zeros((n,), bool))
+    idx, d2, trunc = compact_apply(grid.valid, fn, init, chunk)
+    has = jnp.isfinite(d2)
+    return RadiusNeighbors(idx=jnp.where(has, idx, -1), dist2=d2, count=jnp.sum(has, axis=1).astype(jnp.int32),
+                           truncated=jnp.sum(trunc).astype(jnp.int32))
+
+
+def estimate_normals(points, valid=None, k: int = 16, radius: float | None = None):
+    """PCA normals (n, 3) over the k nearest neighbours (self included), up to sign, as Open3D's
+    ``estimate_normals(KDTreeSearchParamKNN(k))``; zero where fewer than 3 neighbours.
+    radius: static coarse cell of the temporary index (default: 1/16 of the largest extent)."""
+    points = jnp.asarray(points)
+    if radius is None:
+        p = np.asarray(points)
+        m = np.all(np.isfinite(p), axis=1) if valid is None else np.asarray(valid, bool)
+        ext = float(np.max(np.ptp(p[m], axis=0))) if m.any() else 1.0
+        radius = max(ext / 16.0, 1e-6)
+    index = build_target_index(points, valid, radius=radius, k=k)
+    n = points.shape[0]
+    inv = jnp.zeros((n,), jnp.int32).at[index.order].set(jnp.arange(n, dtype=jnp.int32))
+    return index.normals[inv]
