@@ -1,0 +1,355 @@
+"""Landmarks, tracks and association for the factor graph; trajectory refinement (paper, Sec. 3.4).
+
+Landmarks come only from static (``1 − M_dyn``), high-confidence pixels with valid prior depth:
+one candidate per ``cell x cell`` block of each keyframe (:func:`select_landmark_pixels`). Each is
+followed through the next frames by chaining the optical flow (:func:`chain_tracks`; forward-
+backward consistency when a backward flow is given; keypoint matches can be chained the same
+way), and lifted to 3D with the prior depth and pose of its keyframe (:func:`lift_landmarks`).
+Candidates are associated with a bank of known landmarks (the memory) when their 3D distance is
+below the adaptive threshold ``τ_dist = max(τ_min, d_scene · α)`` (:func:`associate_landmarks`);
+associated landmarks take the stored 3D position and are flagged as memory landmarks, whose
+projection covariance the graph scales by ``α_mem`` (:func:`cm3d.solvers.factors.build_graph`).
+
+:func:`refine_trajectory` builds the paper's graph (prior on the first pose, motion factors from
+the prior's relative poses, Huber projection factors), solves it with the Schur-complement LM,
+rejects outliers with the adaptive threshold, solves again and re-orthonormalises the rotations.
+
+All functions are pure JAX with fixed shapes (padded to capacities with validity masks), so a
+sequence of a given size compiles once. Shapes: ``S`` frames of ``H x W``; poses cam_to_world.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from cm3d.solvers import factors, lm
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackConfig:
+    """Landmark selection and tracking (shape-affecting fields are static).
+
+    cell: one candidate per cell x cell pixels of a keyframe; keyframe_every: frames between
+    keyframes; track_length: frames a track spans (keyframe included); conf_quantile: a pixel is
+    high-confidence when its confidence reaches this quantile of the frame's static pixels;
+    border: pixels kept clear of the image border; fb_max_px: forward-backward flow consistency
+    (only with a backward flow); min_track: shortest track kept (frames).
+    """
+
+    cell: int = 16
+    keyframe_every: int = 3
+    track_length: int = 10
+    conf_quantile: float = 0.5
+    border: int = 4
+    fb_max_px: float = 0.5
+    min_track: int = 3
+
+    def __post_init__(self):
+        if self.cell < 1 or self.keyframe_every < 1 or self.track_length < 2:
+            raise ValueError("TrackConfig: cell, keyframe_every >= 1 and track_length >= 2 required")
+        if not 0.0 <= self.conf_quantile < 1.0:
+            raise ValueError("TrackConfig.conf_quantile: must be in [0, 1)")
+
+
+@dataclasses.dataclass(frozen=True)
+class AssociationConfig:
+    """Adaptive association threshold ``τ_dist = max(tau_min, d_scene · ratio)`` (scene units)."""
+
+    tau_min: float = 0.01
+    ratio: float = 0.01
+
+
+@dataclasses.dataclass(frozen=True)
+class RefineConfig:
+    """Trajectory refinement: the graph's noise model, the solver, the outlier rejection (``rounds``
+    solves with a rejection between them) and the model-selection gate.
+
+    gate: keep the prior poses unless refining them explains the observations significantly
+    better: a likelihood-ratio test of "the prior poses are right" (poses held at the prior,
+    landmarks re-estimated) against the refined poses, ``2 ΔC > χ²_q(6 (S − 1))`` with the
+    objective whitened by the configured pixel noise ``sigma_proj``; gate_quantile: q.
+    """
+
+    graph: factors.GraphConfig = factors.GraphConfig()
+    solver: lm.LMOptions = lm.LMOptions(backward="none", max_iterations=50)
+    outliers: factors.OutlierConfig = factors.OutlierConfig()
+    rounds: int = 2
+    gate: bool = True
+    gate_quantile: float = 0.99
+
+
+@struct.dataclass
+class Tracks:
+    """Tracks of landmark candidates. uv: (L, T, 2) pixel positions; valid: (L, T) bool;
+    frame: (L,) int32 keyframe index of the track's start (its t = 0); the track is at frame
+    ``frame + t`` at step t."""
+
+    uv: jnp.ndarray
+    valid: jnp.ndarray
+    frame: jnp.ndarray
+
+
+@struct.dataclass
+class Observations:
+    """Padded projection observations: pose_idx, point_idx (K,) int32, uv (K, 2), valid (K,) bool,
+    memory (K,) bool."""
+
+    pose_idx: jnp.ndarray
+    point_idx: jnp.ndarray
+    uv: jnp.ndarray
+    valid: jnp.ndarray
+    memory: jnp.ndarray
+
+
+def keyframes(num_frames: int, cfg: TrackConfig) -> jnp.ndarray:
+    """Keyframe indices (static count): 0, κ, 2κ, ... before the last frame."""
+    return jnp.arange(0, max(num_frames - 1, 1), cfg.keyframe_every, dtype=jnp.int32)
+
+
+def scene_scale(depth, valid) -> jnp.ndarray:
+    """``d_scene``: median prior depth over valid pixels (scalar)."""
+    d = depth.ravel()
+    return factors.masked_median(d, valid.ravel() & (d > 0))
+
+
+def select_landmark_pixels(depth, conf, static, cfg: TrackConfig = TrackConfig()):
+    """Landmark candidates of one frame: the most confident eligible pixel of every cell.
+
+    depth, conf: (H, W) prior depth and confidence; static: (H, W) bool (``1 − M_dyn``).
+    Eligible: static, depth > 0, confidence >= the frame's ``conf_quantile`` over static pixels,
+    ``border`` px from the edge. Returns uv (C, 2) float pixel centres and valid (C,) bool,
+    ``C = (H // cell) * (W // cell)``.
+    """
+    H, W = depth.shape
+    c = cfg.cell
+    h, w = H // c, W // c
+    ok = static & (depth > 0) & jnp.isfinite(depth) & jnp.isfinite(conf)
+    thr = jnp.nanquantile(jnp.where(ok, conf, jnp.nan), cfg.conf_quantile)
+    thr = jnp.where(jnp.isfinite(thr), thr, jnp.inf)
+    v, u = jnp.meshgrid(jnp.arange(H), jnp.arange(W), indexing="ij")
+    inside = (u >= cfg.border) & (u < W - cfg.border) & (v >= cfg.border) & (v < H - cfg.border)
+    elig = ok & (conf >= thr) & inside
+    score = jnp.where(elig, conf, -jnp.inf)[: h * c, : w * c]
+    blocks = score.reshape(h, c, w, c).transpose(0, 2, 1, 3).reshape(h * w, c * c)
+    best = jnp.argmax(blocks, -1)
+    valid = jnp.take_along_axis(blocks, best[:, None], -1)[:, 0] > -jnp.inf
+    by, bx = best // c, best % c
+    cy, cx = jnp.divmod(jnp.arange(h * w), w)
+    uv = jnp.stack([cx * c + bx, cy * c + by], -1).astype(depth.dtype)
+    return uv, valid
+
+
+def bilinear(stack, idx, uv):
+    """Sample images ``stack[idx]`` (stack (S, H, W, C)) at pixels uv (L, 2); idx (L,) int.
+
+    Bilinear, clamped to the image; gathers only the 4 neighbours of each point.
+    """
+    H, W = stack.shape[1:3]
+    x = jnp.clip(uv[:, 0], 0.0, W - 1.0)
+    y = jnp.clip(uv[:, 1], 0.0, H - 1.0)
+    x0 = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, W - 2)
+    y0 = jnp.clip(jnp.floor(y).astype(jnp.int32), 0, H - 2)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    a, b = stack[idx, y0, x0], stack[idx, y0, x0 + 1]
+    c, d = stack[idx, y0 + 1, x0], stack[idx, y0 + 1, x0 + 1]
+    return (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
+
+
+def chain_tracks(flow, static, seeds_uv, seeds_valid, seed_frames, cfg: TrackConfig = TrackConfig(),
+                 flow_bwd=None) -> Tracks:
+    """Follow seed pixels through the sequence by chaining forward flow.
+
+    flow: (S−1, H, W, 2) forward flow (``F[v, u]`` sends frame t to t+1); static: (S, H, W) bool;
+    seeds_uv: (F, C, 2), seeds_valid: (F, C) at keyframes seed_frames (F,); flow_bwd: optional
+    (S−1, H, W, 2) backward flow (frame t+1 to t) for a forward-backward check. A track stops when
+    it leaves the image, lands on a dynamic pixel, fails the check or reaches the last frame.
+    Returns :class:`Tracks` with L = F * C tracks of ``cfg.track_length`` steps.
+    """
+    S, H, W = static.shape
+    F_, C = seeds_valid.shape
+    uv0 = seeds_uv.reshape(F_ * C, 2).astype(jnp.result_type(seeds_uv.dtype, flow.dtype))
+    ok0 = seeds_valid.reshape(-1)
+    frame = jnp.repeat(seed_frames.astype(jnp.int32), C)
+    b = cfg.border * 0.5
+
+    def step(carry, t):
+        uv, ok = carry
+        f = frame + t  # frame of uv
+        fi = jnp.clip(f, 0, S - 2)
+        fl = bilinear(flow, fi, uv).astype(uv.dtype)
+        nxt = uv + fl
+        inside = (nxt[:, 0] >= b) & (nxt[:, 0] <= W - 1 - b) & (nxt[:, 1] >= b) & (nxt[:, 1] <= H - 1 - b)
+        ri = jnp.clip(jnp.round(nxt[:, 1]).astype(jnp.int32), 0, H - 1)
+        ci = jnp.clip(jnp.round(nxt[:, 0]).astype(jnp.int32), 0, W - 1)
+        stat = static[jnp.clip(f + 1, 0, S - 1), ri, ci]
+        good = ok & (f + 1 < S) & inside & stat
+        if flow_bwd is not None:
+            back = bilinear(flow_bwd, fi, nxt).astype(uv.dtype)
+            good &= jnp.linalg.norm(nxt + back - uv, axis=-1) <= cfg.fb_max_px
+        nxt = jnp.where(good[:, None], nxt, uv)
+        return (nxt, good), (nxt, good)
+
+    _, (uvs, oks) = jax.lax.scan(step, (uv0, ok0), jnp.arange(cfg.track_length - 1))
+    uv = jnp.concatenate([uv0[None], uvs], 0).transpose(1, 0, 2)
+    valid = jnp.concatenate([ok0[None], oks], 0).T
+    length = jnp.sum(valid, -1)
+    valid &= (length >= cfg.min_track)[:, None]
+    return Tracks(uv=uv, valid=valid, frame=frame)
+
+
+def lift_landmarks(tracks: Tracks, depth, intrinsics, poses):
+    """World landmarks (L, 3) from the prior depth at each track's first pixel, its keyframe's
+    intrinsics and prior pose; and which are valid (L,)."""
+    uv = tracks.uv[:, 0]
+    f = tracks.frame
+    r = jnp.round(uv[:, 1]).astype(jnp.int32)
+    c = jnp.round(uv[:, 0]).astype(jnp.int32)
+    d = depth[f, r, c]
+    Kinv = jnp.linalg.inv(intrinsics[f])
+    ray = jnp.einsum("lij,lj->li", Kinv, jnp.concatenate([uv, jnp.ones_like(uv[:, :1])], -1))
+    pc = ray * d[:, None]
+    T = poses[f]
+    pw = jnp.einsum("lij,lj->li", T[:, :3, :3], pc) + T[:, :3, 3]
+    return pw, tracks.valid[:, 0] & (d > 0)
+
+
+def track_observations(tracks: Tracks, memory=None) -> Observations:
+    """Flatten tracks into padded observations (K = L * T): pose = frame + t, point = track id."""
+    L, T = tracks.valid.shape
+    t = jnp.arange(T, dtype=jnp.int32)
+    pose = (tracks.frame[:, None] + t[None]).reshape(-1)
+    point = jnp.repeat(jnp.arange(L, dtype=jnp.int32), T)
+    mem = jnp.zeros(L, bool) if memory is None else memory
+    valid = tracks.valid.reshape(-1)
+    return Observations(pose_idx=jnp.where(valid, pose, 0), point_idx=point,
+                        uv=tracks.uv.reshape(-1, 2), valid=valid, memory=jnp.repeat(mem, T))
+
+
+def association_threshold(d_scene, cfg: AssociationConfig = AssociationConfig()):
+    """``τ_dist = max(τ_min, d_scene · α)``."""
+    return jnp.maximum(cfg.tau_min, d_scene * cfg.ratio)
+
+
+def associate_landmarks(points, valid, bank, bank_valid, d_scene, cfg: AssociationConfig = AssociationConfig()):
+    """Nearest bank landmark within ``τ_dist`` of each candidate.
+
+    points: (L, 3), valid: (L,); bank: (B, 3) stored landmarks (memory), bank_valid: (B,).
+    Returns (index (L,) int32 into the bank, matched (L,) bool, τ_dist).
+    """
+    d2 = jnp.sum((points[:, None, :] - bank[None, :, :]) ** 2, -1)
+    d2 = jnp.where(bank_valid[None, :], d2, jnp.inf)
+    idx = jnp.argmin(d2, -1).astype(jnp.int32)
+    tau = association_threshold(d_scene, cfg)
+    best = jnp.take_along_axis(d2, idx[:, None], -1)[:, 0]
+    return idx, valid & (best <= tau * tau), tau
+
+
+def add_memory_landmarks(points, valid, bank, bank_valid, d_scene, cfg: AssociationConfig = AssociationConfig()):
+    """Associate candidates with the memory bank; matched ones take the stored 3D position.
+
+    Returns (points (L, 3), memory flags (L,) bool).
+    """
+    idx, matched, _ = associate_landmarks(points, valid, bank, bank_valid, d_scene, cfg)
+    return jnp.where(matched[:, None], bank[idx], points), matched
+
+
+@struct.dataclass
+class Refinement:
+    """Result of :func:`refine_trajectory`: poses (S, 4, 4), points (L, 3), the final LM result,
+    the inlier mask (K,) of the projection factors, the last outlier threshold (px), and the
+    gate's decision (``refined``: the poses are the refined ones) with its test statistic and
+    threshold; ``refined_poses``: the refined poses whatever the gate decided."""
+
+    poses: jnp.ndarray
+    points: jnp.ndarray
+    result: lm.LMResult
+    inlier: jnp.ndarray
+    tau_px: jnp.ndarray
+    refined: jnp.ndarray
+    gate_stat: jnp.ndarray
+    gate_threshold: jnp.ndarray
+    refined_poses: jnp.ndarray
+
+
+def chi2_quantile(q, dof):
+    """Wilson–Hilferty approximation of the χ² quantile (accurate to ~1% for dof >= 3)."""
+    z = jax.scipy.special.ndtri(q)
+    k = jnp.maximum(dof, 1.0)
+    return k * (1.0 - 2.0 / (9.0 * k) + z * jnp.sqrt(2.0 / (9.0 * k))) ** 3
+
+
+def refine_trajectory(prior_poses, intrinsics, points, obs: Observations,
+                      cfg: RefineConfig = RefineConfig(), pose_valid=None) -> Refinement:
+    """The paper's factor-graph refinement of the prior poses (S, 4, 4) with landmarks (L, 3).
+
+    Solve, reject outliers with the adaptive threshold, solve again from the previous optimum
+    (``cfg.rounds`` solves), re-orthonormalise the rotations by SVD; then (``cfg.gate``) keep the
+    prior poses unless the refinement is statistically significant (see :class:`RefineConfig`).
+    The solves run as stages of one ``lax.scan`` (one solver in the compiled program).
+    """
+    graph = factors.build_graph(prior_poses, intrinsics, obs.pose_idx, obs.point_idx, obs.uv,
+                                obs.valid, obs.memory, pose_valid, cfg.graph)
+    dt = prior_poses.dtype
+    rounds = cfg.rounds
+    gate_stage = rounds if cfg.gate else -1
+    x0 = factors.Variables(prior_poses, points)
+
+    def stage(carry, k):
+        graph, x, inlier, tau = carry
+        gate = k == gate_stage
+        g = graph.replace(pose_fixed=jnp.where(gate, jnp.ones_like(graph.pose_fixed), graph.pose_fixed))
+        init = factors.Variables(jnp.where(gate, prior_poses, x.poses), x.points)
+        res = lm.solve(g, init, cfg.solver)
+        reject = k < rounds - 1
+        g2, inl2, tau2 = factors.reject_outliers(graph, res.params, cfg.outliers)
+        pick = lambda a, b: jax.tree.map(lambda u, v: jnp.where(reject, u, v), a, b)  # noqa: E731
+        graph, inlier, tau = pick((g2, inl2, tau2), (graph, inlier, tau))
+        x = jax.tree.map(lambda u, v: jnp.where(gate, u, v), x, res.params)
+        return (graph, x, inlier, tau), res
+
+    n_stages = rounds + (1 if cfg.gate else 0)
+    carry0 = (graph, x0, obs.valid, jnp.zeros((), dt))
+    (graph, x, inlier, tau), results = jax.lax.scan(stage, carry0, jnp.arange(n_stages))
+    res = jax.tree.map(lambda a: a[rounds - 1], results)
+    refined_poses = factors.orthonormalize_poses(res.params.poses)
+    stat = thr = jnp.zeros((), dt)
+    use = jnp.ones((), bool)
+    points_out = res.params.points
+    if cfg.gate:
+        fixed = jax.tree.map(lambda a: a[rounds], results)
+        w = graph.projection.weight > 0
+        stat = 2.0 * (fixed.cost - res.cost)
+        n_pose = jnp.sum(jnp.zeros(prior_poses.shape[0], jnp.int32).at[obs.pose_idx].max(w.astype(jnp.int32)))
+        thr = chi2_quantile(cfg.gate_quantile, 6.0 * jnp.maximum(n_pose - 1, 1).astype(dt))
+        use = stat > thr
+        points_out = jnp.where(use, res.params.points, fixed.params.points)
+    poses = jnp.where(use, refined_poses, prior_poses)
+    return Refinement(poses=poses, points=points_out, result=res, inlier=inlier, tau_px=tau, refined=use,
+                      gate_stat=stat, gate_threshold=thr, refined_poses=refined_poses)
+
+
+def prepare_landmarks(depth, conf, static, intrinsics, prior_poses, flow, flow_bwd=None,
+                      track_cfg: TrackConfig = TrackConfig(), memory_bank=None, memory_valid=None,
+                      assoc_cfg: AssociationConfig = AssociationConfig()):
+    """Keyframe landmarks from static, confident pixels; flow tracks; optional memory association.
+
+    depth, conf: (S, H, W) priors; static: (S, H, W) bool; intrinsics (S, 3, 3); prior_poses
+    (S, 4, 4); flow (and flow_bwd): (S−1, H, W, 2). memory_bank: optional (B, 3) stored landmarks in
+    the prior's frame. Returns (points (L, 3), Observations, Tracks, d_scene).
+    """
+    S = depth.shape[0]
+    kf = keyframes(S, track_cfg)
+    uv, ok = jax.vmap(lambda d, c, m: select_landmark_pixels(d, c, m, track_cfg))(depth[kf], conf[kf], static[kf])
+    tracks = chain_tracks(flow, static, uv, ok, kf, track_cfg, flow_bwd)
+    points, pvalid = lift_landmarks(tracks, depth, intrinsics, prior_poses)
+    tracks = tracks.replace(valid=tracks.valid & pvalid[:, None])
+    d_scene = scene_scale(depth, static)
+    memory = None
+    if memory_bank is not None:
+        bv = jnp.ones(memory_bank.shape[0], bool) if memory_valid is None else memory_valid
+        points, memory = add_memory_landmarks(points, tracks.valid[:, 0], memory_bank, bv, d_scene, assoc_cfg)
+    return points, track_observations(tracks, memory), tracks, d_scene

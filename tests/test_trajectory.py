@@ -1,0 +1,134 @@
+"""Landmark selection, flow tracks, association and trajectory refinement on the synthetic world."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cm3d import trajectory
+from cm3d.data import synthetic
+from cm3d.eval import metrics
+from cm3d.solvers import factors
+
+# compile fast (LLVM -O0): these programs run on tiny problems, compile time dominates
+FAST = {"xla_backend_optimization_level": 0}
+
+CFG = synthetic.WorldConfig(height=96, width=128)
+TRACK = trajectory.TrackConfig(cell=8, keyframe_every=2, track_length=5, border=3)
+S = 6
+
+
+@pytest.fixture(scope="module")
+def world():
+    scene = synthetic.make_scene(0, CFG)
+    images, gt = synthetic.render_ground_truth(scene, 1, S, CFG)
+    return images, gt
+
+
+def test_select_landmark_pixels_static_confident_only(world):
+    _, gt = world
+    depth = jnp.asarray(gt.depth[0], jnp.float32)
+    conf = jnp.asarray(np.random.default_rng(0).uniform(1, 10, depth.shape), jnp.float32)
+    static = jnp.asarray(~gt.dynamic_mask[0])
+    static = static.at[:, :40].set(False)  # a dynamic band: no landmark there
+    select = jax.jit(lambda d, c, s: trajectory.select_landmark_pixels(d, c, s, TRACK), compiler_options=FAST)
+    uv, ok = select(depth, conf, static)
+    C = (96 // 8) * (128 // 8)
+    assert uv.shape == (C, 2) and ok.shape == (C,)
+    u, v = np.asarray(uv[ok]).astype(int).T
+    assert np.all(np.asarray(static)[v, u]) and np.all(np.asarray(depth)[v, u] > 0)
+    thr = np.quantile(np.asarray(conf)[np.asarray(static) & (np.asarray(depth) > 0)], TRACK.conf_quantile)
+    assert np.all(np.asarray(conf)[v, u] >= thr - 1e-5)
+    assert np.all(u >= 40) and ok.sum() > C // 3
+    # one candidate per cell, inside its cell
+    cells = (v // 8) * (128 // 8) + (u // 8)
+    np.testing.assert_array_equal(cells, np.flatnonzero(np.asarray(ok)))
+
+
+def test_tracks_follow_ground_truth_flow_and_lift_to_world_points(world):
+    _, gt = world
+    with jax.enable_x64(True):
+        static = jnp.asarray(~gt.dynamic_mask)
+        depth = jnp.asarray(gt.depth, jnp.float64)
+        conf = jnp.ones_like(depth)
+        K = jnp.asarray(gt.intrinsic)
+        poses = jnp.asarray(gt.cam_to_world)
+        prepare = jax.jit(lambda *a: trajectory.prepare_landmarks(*a, track_cfg=TRACK), compiler_options=FAST)
+        pts, obs, tracks, d_scene = prepare(depth, conf, static, K, poses, jnp.asarray(gt.flow, jnp.float64))
+        valid = np.asarray(obs.valid)
+        assert valid.sum() > 100
+        # lifted landmarks are the true world points: they project onto every tracked position
+        graph = factors.build_graph(poses, K, obs.pose_idx, obs.point_idx, obs.uv, obs.valid)
+        err = np.asarray(factors.reprojection_errors(graph, factors.Variables(poses, pts)))[valid]
+        assert np.median(err) < 0.05 and np.quantile(err, 0.9) < 0.5
+        # tracks never sit on moving objects and start at keyframes
+        pid, uv = np.asarray(obs.pose_idx)[valid], np.asarray(obs.uv)[valid]
+        r, c = np.round(uv[:, 1]).astype(int), np.round(uv[:, 0]).astype(int)
+        assert not np.any(gt.dynamic_mask[pid, r, c])
+        assert set(np.asarray(tracks.frame)) <= set(range(0, S, TRACK.keyframe_every))
+        assert float(d_scene) == pytest.approx(np.median(gt.depth[~gt.dynamic_mask & (gt.depth > 0)]), rel=1e-6)
+
+
+def test_forward_backward_check_cuts_inconsistent_tracks(world):
+    _, gt = world
+    flow = jnp.asarray(gt.flow, jnp.float32)
+    static = jnp.ones(gt.depth.shape, bool)
+    seeds = jnp.array([[[40.0, 40.0], [80.0, 50.0]]])
+    ok = jnp.ones((1, 2), bool)
+    kf = jnp.zeros(1, jnp.int32)
+    # a backward flow that undoes the forward one passes; a wrong one (2 px off) fails
+    good = trajectory.chain_tracks(flow, static, seeds, ok, kf, TRACK, flow_bwd=-flow)
+    bad = trajectory.chain_tracks(flow, static, seeds, ok, kf, TRACK, flow_bwd=-flow + 2.0)
+    assert np.asarray(good.valid).sum() > np.asarray(bad.valid).sum()
+    assert not np.any(np.asarray(bad.valid)[:, 1:])
+
+
+def test_association_threshold_and_memory_landmarks():
+    with jax.enable_x64(True):
+        cfg = trajectory.AssociationConfig(tau_min=0.05, ratio=0.02)
+        assert float(trajectory.association_threshold(1.0, cfg)) == pytest.approx(0.05)
+        assert float(trajectory.association_threshold(10.0, cfg)) == pytest.approx(0.2)
+        bank = jnp.array([[0.0, 0, 0], [1, 0, 0], [5, 5, 5]])
+        pts = jnp.array([[0.03, 0, 0], [1.0, 0.1, 0], [5, 5, 5.01], [9, 9, 9]])
+        valid = jnp.array([True, True, True, True])
+        bank_valid = jnp.array([True, True, False])
+        idx, matched, tau = trajectory.associate_landmarks(pts, valid, bank, bank_valid, 1.0, cfg)
+        np.testing.assert_array_equal(matched, [True, False, False, False])  # 0.1 > τ; bank 2 invalid
+        _, matched10, _ = trajectory.associate_landmarks(pts, valid, bank, bank_valid, 10.0, cfg)
+        np.testing.assert_array_equal(matched10, [True, True, False, False])  # τ = 0.2 at d_scene 10
+        new, mem = trajectory.add_memory_landmarks(pts, valid, bank, bank_valid, 10.0, cfg)
+        np.testing.assert_allclose(new[:2], bank[:2])
+        np.testing.assert_allclose(new[2:], pts[2:])
+        np.testing.assert_array_equal(mem, [True, True, False, False])
+
+
+def _refine_sequence(gt, level):
+    seq = synthetic.make_priors(np.zeros((S, 96, 128, 3), np.uint8), gt, level, seed=3)
+    f64 = lambda a: jnp.asarray(a, jnp.float64)  # noqa: E731
+    with jax.enable_x64(True):
+        return seq, RUN(f64(seq.depth), f64(seq.depth_conf), jnp.asarray(~gt.dynamic_mask), f64(seq.intrinsic),
+                        f64(seq.cam_to_world), f64(gt.flow))
+
+
+@functools.partial(jax.jit, compiler_options=FAST)
+def RUN(depth, conf, static, K, poses, flow):
+    pts, obs, _, _ = trajectory.prepare_landmarks(depth, conf, static, K, poses, flow, track_cfg=TRACK)
+    return trajectory.refine_trajectory(poses, K, pts, obs)
+
+
+def test_refinement_lowers_ate_and_keeps_exact_priors(world):
+    _, gt = world
+    ate = lambda seq, est: metrics.evaluate_trajectories(seq.timestamps, gt.cam_to_world, seq.timestamps,  # noqa: E731
+                                                         np.asarray(est))["ate"]
+    seq, ref = _refine_sequence(gt, "moderate")
+    assert bool(ref.refined)
+    assert ate(seq, ref.poses) < 0.6 * ate(seq, seq.cam_to_world)
+    R = np.asarray(ref.poses[:, :3, :3])
+    np.testing.assert_allclose(np.swapaxes(R, 1, 2) @ R, np.broadcast_to(np.eye(3), R.shape), atol=1e-12)
+    # exact priors: the gate finds no significant improvement and returns them unchanged
+    seq, ref = _refine_sequence(gt, "none")
+    assert not bool(ref.refined)
+    np.testing.assert_allclose(ref.poses, seq.cam_to_world, atol=1e-12)
+    assert np.all(np.isfinite(np.asarray(ref.points)))
