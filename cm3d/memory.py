@@ -324,7 +324,7 @@ class Verification:
 def registration_options(cfg: MemoryConfig):
     from cm3d.solvers.align import GlobalOptions
 
-    return GlobalOptions(scales=tuple(cfg.scales), with_scale=True)
+    return dataclasses.replace(GlobalOptions.sim3(), scales=tuple(cfg.scales))
 
 
 def verify(bank: MemoryBank, map_id, entry: MapEntry, cfg: MemoryConfig, key) -> Verification:

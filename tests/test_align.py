@@ -87,7 +87,8 @@ def test_fpfh_equals_open3d(visits):
     with jax.enable_x64(True):
         f, truncated = jax.jit(ours)(jnp.asarray(P), jnp.asarray(Nrm))
         # vmap invariance; flipped normal signs give other features (hence cm3d's oriented normals)
-        fb, _ = jax.jit(jax.vmap(ours))(jnp.stack([jnp.asarray(P)] * 2), jnp.stack([jnp.asarray(Nrm), -jnp.asarray(Nrm)]))
+        Pj, Nj = jnp.asarray(P), jnp.asarray(Nrm)
+        fb, _ = jax.jit(jax.vmap(ours))(jnp.stack([Pj, Pj]), jnp.stack([Nj, -Nj]))
     f, fb = np.asarray(f), np.asarray(fb)
     assert f.dtype == np.float64 and int(truncated) == 0 and len(ref) > 500
     np.testing.assert_allclose(f, ref, atol=1e-6)
@@ -106,7 +107,8 @@ def test_ransac_recovers_transform_with_outliers():
     bad = rng.random(400) < 0.8
     dst[bad] = rng.uniform(-3, 3, (bad.sum(), 3))
     opts = GlobalOptions(inlier_distance=0.05, num_samples=8192, num_hypotheses=1024, num_candidates=4)
-    Ts, inl = _ransac(jnp.asarray(src), jnp.asarray(dst, jnp.float32), jnp.ones(400, bool), jax.random.key(0), options=opts)
+    Ts, inl = _ransac(jnp.asarray(src), jnp.asarray(dst, jnp.float32), jnp.ones(400, bool), jax.random.key(0),
+                      options=opts)
     dR, dt, _ = pose_err(Ts[0], T)
     assert dR < 0.1 and dt < 1e-3 and int(inl[0]) == int((~bad).sum())
     assert np.all(np.diff(np.asarray(inl)) <= 0)  # best first

@@ -26,7 +26,8 @@ def run_icp(src, index, init=None, valid=None, options=P2L):
     """The jitted ICP with explicit init and mask (one program per option set)."""
     init = np.eye(4) if init is None else init
     valid = np.ones(len(src), bool) if valid is None else valid
-    return _icp(jnp.asarray(src, jnp.float32), index, jnp.asarray(init, jnp.float32), jnp.asarray(valid), options=options)
+    return _icp(jnp.asarray(src, jnp.float32), index, jnp.asarray(init, jnp.float32), jnp.asarray(valid),
+                options=options)
 
 
 def build(points, valid=None):
@@ -97,7 +98,8 @@ def test_icp_matches_open3d(options, target_index):
     pt.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(16))
     ps = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src.astype(np.float64)))
     reg = o3d.pipelines.registration
-    est = reg.TransformationEstimationPointToPlane() if options.method == "point_to_plane" else reg.TransformationEstimationPointToPoint()
+    est = (reg.TransformationEstimationPointToPlane() if options.method == "point_to_plane"
+           else reg.TransformationEstimationPointToPoint())
     ro = reg.registration_icp(ps, pt, R_MAX, np.eye(4), est, reg.ICPConvergenceCriteria(max_iteration=100))
     res = run_icp(src, target_index, options=options)
     dR, dt = pose_err(res.transform, ro.transformation)

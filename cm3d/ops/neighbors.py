@@ -17,8 +17,12 @@ k-nearest-neighbour graph, PCA normals and the warm-started graph walk used by I
 The ICP correspondence search is a walk on the graph: a source point keeps its current match ``m``
 and moves it to the closest of ``m``'s neighbours. When the walk stops at ``m`` with distance ``d``
 and ``2 d < rho[m]``, ``m`` is provably the exact nearest neighbour (any closer point would lie within
-``2 d`` of ``m``, hence in its list); :func:`certified_nearest` checks that and runs the exact grid
-search only for the remaining queries.
+``2 d`` of ``m``, hence in its list); :func:`certified_nearest` checks that and searches only the
+remaining queries exactly: the 27 fine cells around the query when ``d`` is below a fine cell
+(about k candidates), else the 27 coarse cells.
+
+:class:`Grid` / :func:`radius_neighbors` / :func:`grid_nearest`: a plain uniform grid (traced cell)
+for the radius neighbourhoods of FPFH features and the ICP refinement of global registration.
 
 All positions returned by the walk are *sorted* positions into ``index.points``; ``index.order``
 maps them back to the caller's point indices.

@@ -7,9 +7,10 @@ padded to a static ``capacity`` with a validity mask, and a capacity that is too
 The cell hash is open addressing with linear probing, built without sorting: in each round every
 key still unplaced writes its item id into its current probe slot with a scatter-min (only into
 empty slots); the keys that lost the slot to a *different* key probe the next slot in the next
-round (one small while loop: quick to compile, and as fast as compacting the stragglers). Keys that are equal move in lockstep, so each distinct key ends in exactly one slot. XLA's
-CPU scatter is much faster than its sort (100k points: ~3 ms against ~20 ms), which is what makes
-:func:`voxel_downsample` faster than Open3D's ``voxel_down_sample``.
+round (one small while loop: quick to compile, and as fast as compacting the stragglers). Keys
+that are equal move in lockstep, so each distinct key ends in exactly one slot. XLA's CPU scatter
+is much faster than its sort, which is what makes :func:`voxel_downsample` faster than Open3D's
+``voxel_down_sample``.
 
 Cell of a point: ``floor((p - origin) / cell)``, Open3D's rule, with ``origin = min - voxel / 2``.
 """
@@ -238,7 +239,8 @@ def voxel_downsample(points, voxel_size, valid=None, features=None, capacity: in
     if capacity == 0 or n == 0:
         F = 0 if feats is None else feats.shape[1]
         z = jnp.zeros((capacity,), dtype)
-        return Voxels(points=jnp.zeros((capacity, 3), dtype), features=None if feats is None else jnp.zeros((capacity, F), dtype),
+        return Voxels(points=jnp.zeros((capacity, 3), dtype),
+                      features=None if feats is None else jnp.zeros((capacity, F), dtype),
                       weight=z, keys=jnp.zeros((capacity, 3), jnp.int32), valid=jnp.zeros((capacity,), bool),
                       count=jnp.int32(0), overflow=jnp.int32(0), origin=origin, voxel_size=vs)
     mean, wsum, vkeys, filled, count, overflow = _reduce_cells(keys, active, values, w, capacity)

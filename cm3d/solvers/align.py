@@ -465,7 +465,8 @@ def global_registration(source, target, source_valid=None, target_valid=None, ke
         (ps, ms), (pt, mt) = pad(source, sv), pad(target, tv)
         pts = jnp.concatenate([pt[None], jnp.broadcast_to(ps, (S, L, 3))])
         msk = jnp.concatenate([mt[None], jnp.broadcast_to(ms, (S, L))])
-        fc = jax.vmap(lambda p, m, s: describe(p * s, m, v, o))(pts, msk, jnp.concatenate([jnp.ones((1,), dtype), scales]))
+        pre = jnp.concatenate([jnp.ones((1,), dtype), scales])
+        fc = jax.vmap(lambda p, m, s: describe(p * s, m, v, o))(pts, msk, pre)
         tf = jax.tree.map(lambda x: x[0], fc)
         sfs = jax.tree.map(lambda x: x[1:], fc)
     else:

@@ -3,10 +3,12 @@ optional robust kernel) against a cached :class:`~cm3d.ops.neighbors.TargetIndex
 
 Correspondences come from the warm-started graph walk (:func:`cm3d.ops.neighbors.walk`): each
 source point is seeded once from the coarse grid, walked to a local minimum, then moved by one
-walk step per iteration (~16 candidates instead of a grid or tree search). The final fitness,
-inlier count and inlier RMSE are *exact* (what Open3D's ``registration_icp`` reports): matches the
-k-NN graph certifies are kept, the others are searched exactly on the grid
-(:func:`cm3d.ops.neighbors.certified_nearest`).
+walk step per iteration (~16 candidates instead of a grid or tree search). The walk can stop at a
+local minimum of the k-NN graph, so once this *walk phase* has settled (``walk_tolerance`` x the
+thresholds) an *exact phase* iterates with exact correspondences: matches the k-NN graph certifies
+are kept, the others are searched on the fine / coarse grid
+(:func:`cm3d.ops.neighbors.certified_nearest`). It converges to exact ICP's fixed point (Open3D's),
+and the reported fitness, inlier count and inlier RMSE are exact (what ``registration_icp`` reports).
 
 One iteration (as Open3D's ``RegistrationICP``): estimate the update from the current
 correspondences, apply it, re-match, and stop when fitness and inlier RMSE change by less than
