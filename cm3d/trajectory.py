@@ -3,8 +3,9 @@
 Landmarks come only from static (``1 − M_dyn``), high-confidence pixels with valid prior depth:
 one candidate per ``cell x cell`` block of each keyframe (:func:`select_landmark_pixels`). Each is
 followed through the next frames by chaining the optical flow (:func:`chain_tracks`; forward-
-backward consistency when a backward flow is given; keypoint matches can be chained the same
-way), and lifted to 3D with the prior depth and pose of its keyframe (:func:`lift_landmarks`).
+backward consistency when a backward flow is given) or keypoint matches
+(:func:`chain_keypoint_tracks`), and lifted to 3D with the prior depth and pose of its keyframe
+(:func:`lift_landmarks`).
 Candidates are associated with a bank of known landmarks (the memory) when their 3D distance is
 below the adaptive threshold ``τ_dist = max(τ_min, d_scene · α)`` (:func:`associate_landmarks`);
 associated landmarks take the stored 3D position and are flagged as memory landmarks, whose
@@ -116,23 +117,29 @@ def scene_scale(depth, valid) -> jnp.ndarray:
     return factors.masked_median(d, valid.ravel() & (d > 0))
 
 
-def select_landmark_pixels(depth, conf, static, cfg: TrackConfig = TrackConfig()):
-    """Landmark candidates of one frame: the most confident eligible pixel of every cell.
-
-    depth, conf: (H, W) prior depth and confidence; static: (H, W) bool (``1 − M_dyn``).
-    Eligible: static, depth > 0, confidence >= the frame's ``conf_quantile`` over static pixels,
-    ``border`` px from the edge. Returns uv (C, 2) float pixel centres and valid (C,) bool,
-    ``C = (H // cell) * (W // cell)``.
-    """
+def eligible_pixels(depth, conf, static, cfg: TrackConfig = TrackConfig()):
+    """(H, W) bool: static, valid depth, confidence >= the frame's ``conf_quantile`` over its
+    static valid pixels, at least ``border`` px from the edge."""
     H, W = depth.shape
-    c = cfg.cell
-    h, w = H // c, W // c
     ok = static & (depth > 0) & jnp.isfinite(depth) & jnp.isfinite(conf)
     thr = jnp.nanquantile(jnp.where(ok, conf, jnp.nan), cfg.conf_quantile)
     thr = jnp.where(jnp.isfinite(thr), thr, jnp.inf)
     v, u = jnp.meshgrid(jnp.arange(H), jnp.arange(W), indexing="ij")
     inside = (u >= cfg.border) & (u < W - cfg.border) & (v >= cfg.border) & (v < H - cfg.border)
-    elig = ok & (conf >= thr) & inside
+    return ok & (conf >= thr) & inside
+
+
+def select_landmark_pixels(depth, conf, static, cfg: TrackConfig = TrackConfig()):
+    """Landmark candidates of one frame: the most confident eligible pixel of every cell.
+
+    depth, conf: (H, W) prior depth and confidence; static: (H, W) bool (``1 − M_dyn``).
+    Eligible: see :func:`eligible_pixels`. Returns uv (C, 2) float pixel centres and valid (C,)
+    bool, ``C = (H // cell) * (W // cell)``.
+    """
+    H, W = depth.shape
+    c = cfg.cell
+    h, w = H // c, W // c
+    elig = eligible_pixels(depth, conf, static, cfg)
     score = jnp.where(elig, conf, -jnp.inf)[: h * c, : w * c]
     blocks = score.reshape(h, c, w, c).transpose(0, 2, 1, 3).reshape(h * w, c * c)
     best = jnp.argmax(blocks, -1)
@@ -141,6 +148,16 @@ def select_landmark_pixels(depth, conf, static, cfg: TrackConfig = TrackConfig()
     cy, cx = jnp.divmod(jnp.arange(h * w), w)
     uv = jnp.stack([cx * c + bx, cy * c + by], -1).astype(depth.dtype)
     return uv, valid
+
+
+def keypoint_seeds(uv, valid, depth, conf, static, cfg: TrackConfig = TrackConfig()):
+    """Keypoints (N, 2) of a frame usable as landmark seeds: valid (N,) and on an eligible pixel
+    (:func:`eligible_pixels`, rounded position)."""
+    H, W = depth.shape
+    elig = eligible_pixels(depth, conf, static, cfg)
+    r = jnp.clip(jnp.round(uv[:, 1]).astype(jnp.int32), 0, H - 1)
+    c = jnp.clip(jnp.round(uv[:, 0]).astype(jnp.int32), 0, W - 1)
+    return valid & elig[r, c]
 
 
 def bilinear(stack, idx, uv):
@@ -198,6 +215,45 @@ def chain_tracks(flow, static, seeds_uv, seeds_valid, seed_frames, cfg: TrackCon
     valid = jnp.concatenate([ok0[None], oks], 0).T
     length = jnp.sum(valid, -1)
     valid &= (length >= cfg.min_track)[:, None]
+    return Tracks(uv=uv, valid=valid, frame=frame)
+
+
+def chain_keypoint_tracks(uv0, uv1, mvalid, static, seeds_uv, seeds_valid, seed_frames,
+                          cfg: TrackConfig = TrackConfig(), radius: float = 1.0) -> Tracks:
+    """Tracks from chained keypoint matches (:func:`cm3d.ops.keypoints.sequence_matches`).
+
+    uv0, uv1: (S−1, N, 2) matched keypoints of consecutive frames (pair t: frame t to t+1),
+    mvalid: (S−1, N); seeds as in :func:`chain_tracks` (keypoints of the keyframes, e.g. the
+    ``uv0`` of their pair filtered by :func:`keypoint_seeds`). At each step a track continues with
+    the match whose ``uv0`` is nearest to its position, within ``radius`` px (the keypoint detected
+    again); it stops when there is none, on a dynamic pixel, out of the image or at the last frame.
+    """
+    S, H, W = static.shape
+    F_, C = seeds_valid.shape
+    pos0 = seeds_uv.reshape(F_ * C, 2).astype(jnp.result_type(seeds_uv.dtype, uv0.dtype))
+    ok0 = seeds_valid.reshape(-1)
+    frame = jnp.repeat(seed_frames.astype(jnp.int32), C)
+
+    def step(carry, t):
+        pos, ok = carry
+        f = frame + t
+        fi = jnp.clip(f, 0, S - 2)
+        d2 = jnp.sum((uv0[fi] - pos[:, None, :]) ** 2, -1)
+        d2 = jnp.where(mvalid[fi], d2, jnp.inf)
+        j = jnp.argmin(d2, -1)
+        near = jnp.take_along_axis(d2, j[:, None], -1)[:, 0] <= radius * radius
+        nxt = uv1[fi, j].astype(pos.dtype)
+        inside = (nxt[:, 0] >= 0) & (nxt[:, 0] <= W - 1) & (nxt[:, 1] >= 0) & (nxt[:, 1] <= H - 1)
+        ri = jnp.clip(jnp.round(nxt[:, 1]).astype(jnp.int32), 0, H - 1)
+        ci = jnp.clip(jnp.round(nxt[:, 0]).astype(jnp.int32), 0, W - 1)
+        good = ok & (f + 1 < S) & near & inside & static[jnp.clip(f + 1, 0, S - 1), ri, ci]
+        nxt = jnp.where(good[:, None], nxt, pos)
+        return (nxt, good), (nxt, good)
+
+    _, (ps, oks) = jax.lax.scan(step, (pos0, ok0), jnp.arange(cfg.track_length - 1))
+    uv = jnp.concatenate([pos0[None], ps], 0).transpose(1, 0, 2)
+    valid = jnp.concatenate([ok0[None], oks], 0).T
+    valid &= (jnp.sum(valid, -1) >= cfg.min_track)[:, None]
     return Tracks(uv=uv, valid=valid, frame=frame)
 
 

@@ -13,7 +13,8 @@ outliers, Huber projection factors, a gauge prior on the first pose and motion f
 2. optimistix and jaxopt LevenbergMarquardt on the same residuals (Huber as ``sqrt(2ρ)``
    residuals, poses as tangent increments), dense Jacobians: on growing problems until they pass
    a time/memory budget, next to cm3d on the same problem;
-3. ``vmap`` over a batch of 8 problems against 8 sequential solves (throughput ratio);
+3. ``vmap`` over a batch of 8 problems against 8 sequential solves (throughput ratio), on one
+   device and with the batch sharded over the two CPU cores (``shard_map``, two host devices);
 4. the implicit gradient of a loss of the optimum w.r.t. the observations: its cost in forward LM
    iterations, and its error against central finite differences of tightly converged solves.
 
@@ -26,6 +27,10 @@ grad_cost_in_iterations, grad_rel_err (and more).
 import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# two host "devices" (one per core) so that a batch can be sharded across the cores; every other
+# measurement runs on the first one
+if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
@@ -82,8 +87,10 @@ def bench_vs_gtsam(name, n, m, repeats, with_pcg):
         cm.append(t)
         ref = baselines.gtsam_solve(graph, init)
         gt.append(ref["time_s"])
-    row = {"problem": name, "poses": n, "landmarks": m, "projections": int(np.sum(np.asarray(graph.projection.weight) > 0)),
-           "cm3d_s": statistics.median(cm), "cm3d_min_s": min(cm), "gtsam_s": statistics.median(gt), "gtsam_min_s": min(gt),
+    row = {"problem": name, "poses": n, "landmarks": m,
+           "projections": int(np.sum(np.asarray(graph.projection.weight) > 0)),
+           "cm3d_s": statistics.median(cm), "cm3d_min_s": min(cm),
+           "gtsam_s": statistics.median(gt), "gtsam_min_s": min(gt),
            "cm3d_iters": int(res.iterations), "cm3d_solves": int(res.linear_solves), "gtsam_iters": ref["iterations"],
            "cm3d_cost": float(res.cost), "gtsam_cost": ref["cost"], "initial_cost": float(res.initial_cost)}
     row["cm3d_per_iter_ms"] = 1e3 * row["cm3d_s"] / max(row["cm3d_iters"], 1)
@@ -186,16 +193,27 @@ def bench_dense_peers(sizes, budget_s, mem_budget_gb):
 # 3. vmap over a batch
 
 
-def bench_batch(n, m, batch, repeats):
+def bench_batch(n, m, batch, repeats, shard=True):
+    """8 sequential solves vs one ``vmap`` over the batch (one device), and ``vmap`` with the batch
+    sharded over the host's CPU devices (``shard_map``: one half per core)."""
     probs = [_problem(s, n, m)[:2] for s in range(batch)]
     cap = max(lm.schur_pair_count(g, m) for g, _ in probs)
     opts = lm.LMOptions(backward="none", pair_capacity=cap, linear_solver="dense")
     stacked = jax.tree.map(lambda *a: jnp.stack(a), *probs)
     vsolve = jit(jax.vmap(lambda g, x: lm.solve(g, x, opts)))
+    devices = jax.devices()
+    sharded = None
+    if shard and len(devices) > 1 and batch % len(devices) == 0:
+        from jax.sharding import Mesh, PartitionSpec
+
+        mesh = Mesh(np.array(devices), ("batch",))
+        spec = PartitionSpec("batch")
+        sharded = jit(jax.shard_map(jax.vmap(lambda g, x: lm.solve(g, x, opts)), mesh=mesh,
+                                    in_specs=(spec, spec), out_specs=spec, check_vma=False))
+        jax.block_until_ready(sharded(*stacked))
     jax.block_until_ready(vsolve(*stacked))
-    for g, x in probs[:1]:
-        jax.block_until_ready(SOLVE(g, x, opts))
-    seq_t, bat_t = [], []
+    jax.block_until_ready(SOLVE(*probs[0], opts))
+    seq_t, bat_t, sh_t = [], [], []
     for _ in range(repeats):
         t0 = time.perf_counter()
         for g, x in probs:
@@ -203,9 +221,16 @@ def bench_batch(n, m, batch, repeats):
         seq_t.append(time.perf_counter() - t0)
         out, t = _timed(vsolve, *stacked)
         bat_t.append(t)
-    return {"batch": batch, "poses": n, "landmarks": m, "sequential_s": statistics.median(seq_t),
-            "batched_s": statistics.median(bat_t), "ratio": statistics.median(seq_t) / statistics.median(bat_t),
-            "max_iters": int(jnp.max(out.iterations)), "min_iters": int(jnp.min(out.iterations))}
+        if sharded is not None:
+            sh_t.append(_timed(sharded, *stacked)[1])
+    seq, bat = statistics.median(seq_t), statistics.median(bat_t)
+    row = {"batch": batch, "poses": n, "landmarks": m, "sequential_s": seq, "batched_s": bat, "vmap_ratio": seq / bat,
+           "devices": len(devices), "max_iters": int(jnp.max(out.iterations)),
+           "min_iters": int(jnp.min(out.iterations))}
+    if sh_t:
+        row["sharded_s"] = statistics.median(sh_t)
+        row["sharded_ratio"] = seq / row["sharded_s"]
+    return row
 
 
 # ----------------------------------------------------------------------------------------------
@@ -291,11 +316,13 @@ def main() -> None:
     print("1. bundle adjustment, cm3d (dense Schur) vs GTSAM LevenbergMarquardtOptimizer (median of "
           f"{reps}; same LM schedule)\n")
     head = (f"{'problem':>8} {'poses':>5} {'lmks':>5} {'proj':>6} | {'cm3d s':>7} {'GTSAM s':>8} {'speedup':>7} | "
-            f"{'cm3d ms/it':>10} {'GTSAM ms/it':>11} {'ratio':>6} | {'iters':>7} | {'cm3d cost':>14} {'GTSAM cost':>14} {'rel diff':>9}")
+            f"{'cm3d ms/it':>10} {'GTSAM ms/it':>11} {'ratio':>6} | {'iters':>7} | {'cm3d cost':>14} "
+            f"{'GTSAM cost':>14} {'rel diff':>9}")
     print(head + "\n" + "-" * len(head))
     for r in rows:
         print(f"{r['problem']:>8} {r['poses']:>5} {r['landmarks']:>5} {r['projections']:>6} | {r['cm3d_s']:>7.3f} "
-              f"{r['gtsam_s']:>8.3f} {r['speedup']:>6.2f}x | {r['cm3d_per_iter_ms']:>10.1f} {r['gtsam_per_iter_ms']:>11.1f} "
+              f"{r['gtsam_s']:>8.3f} {r['speedup']:>6.2f}x | {r['cm3d_per_iter_ms']:>10.1f} "
+              f"{r['gtsam_per_iter_ms']:>11.1f} "
               f"{r['speedup_per_iter']:>5.2f}x | {r['cm3d_iters']:>3}/{r['gtsam_iters']:<3} | {r['cm3d_cost']:>14.6f} "
               f"{r['gtsam_cost']:>14.6f} {r['cost_rel_diff']:>9.1e}")
     lg = rows[-1]
@@ -322,10 +349,13 @@ def main() -> None:
             if r.get(f"{name}_note"):
                 print(f"      {name}: {r[f'{name}_note']}")
 
-    b = bench_batch(*batch_size, 8, max(1, reps // 2 + 1))
-    print(f"\n3. vmap: batch of {b['batch']} problems ({b['poses']} poses, {b['landmarks']} landmarks): "
-          f"8 sequential solves {b['sequential_s']:.3f} s, one batched solve {b['batched_s']:.3f} s, "
-          f"throughput ratio {b['ratio']:.2f}x (iterations {b['min_iters']}-{b['max_iters']})")
+    b = bench_batch(*batch_size, 8, max(1, reps // 2 + 1), shard=not args.quick)
+    print(f"\n3. vmap: batch of {b['batch']} problems ({b['poses']} poses, {b['landmarks']} landmarks, iterations "
+          f"{b['min_iters']}-{b['max_iters']}): 8 sequential solves {b['sequential_s']:.3f} s; vmap on one device "
+          f"{b['batched_s']:.3f} s ({b['vmap_ratio']:.2f}x throughput)")
+    if "sharded_s" in b:
+        print(f"   vmap with the batch sharded over the {b['devices']} CPU cores (shard_map): {b['sharded_s']:.3f} s "
+              f"({b['sharded_ratio']:.2f}x throughput)")
 
     g = bench_gradient(*small, reps)
     print(f"\n4. implicit gradient d loss / d observations ({g['poses']} poses): forward (LM + Newton polish) "
@@ -336,14 +366,22 @@ def main() -> None:
 
     big = rows[1] if len(rows) > 1 else None
     figures = {
-        "speedup_small": rows[0]["speedup"], "speedup_large": big and big["speedup"],
-        "speedup_per_iter_small": rows[0]["speedup_per_iter"], "speedup_per_iter_large": big and big["speedup_per_iter"],
-        "cost_rel_diff_small": rows[0]["cost_rel_diff"], "cost_rel_diff_large": big and big["cost_rel_diff"],
-        "speedup_pcg_large": big and big["gtsam_s"] / big["pcg_s"], "pcg_cost_rel_diff_large": big and big["pcg_cost_rel_diff"],
-        "batch8_throughput_ratio": b["ratio"], "grad_cost_in_iterations": g["cost_in_iterations"],
+        "speedup_small": rows[0]["speedup"],
+        "speedup_large": big and big["speedup"],
+        "speedup_per_iter_small": rows[0]["speedup_per_iter"],
+        "speedup_per_iter_large": big and big["speedup_per_iter"],
+        "cost_rel_diff_small": rows[0]["cost_rel_diff"],
+        "cost_rel_diff_large": big and big["cost_rel_diff"],
+        "speedup_pcg_large": big and big["gtsam_s"] / big["pcg_s"],
+        "pcg_cost_rel_diff_large": big and big["pcg_cost_rel_diff"],
+        "batch8_throughput_ratio": b.get("sharded_ratio", b["vmap_ratio"]),
+        "batch8_vmap_one_device_ratio": b["vmap_ratio"],
+        "grad_cost_in_iterations": g["cost_in_iterations"],
         "grad_rel_err": g["rel_err"],
-        "cm3d_ms_per_iter_small": rows[0]["cm3d_per_iter_ms"], "gtsam_ms_per_iter_small": rows[0]["gtsam_per_iter_ms"],
-        "cm3d_ms_per_iter_large": big and big["cm3d_per_iter_ms"], "gtsam_ms_per_iter_large": big and big["gtsam_per_iter_ms"],
+        "cm3d_ms_per_iter_small": rows[0]["cm3d_per_iter_ms"],
+        "gtsam_ms_per_iter_small": rows[0]["gtsam_per_iter_ms"],
+        "cm3d_ms_per_iter_large": big and big["cm3d_per_iter_ms"],
+        "gtsam_ms_per_iter_large": big and big["gtsam_per_iter_ms"],
     }
     print("\nheadline:")
     for k, v in figures.items():

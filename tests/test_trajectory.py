@@ -85,6 +85,41 @@ def test_forward_backward_check_cuts_inconsistent_tracks(world):
     assert not np.any(np.asarray(bad.valid)[:, 1:])
 
 
+def test_keypoint_chains_equal_flow_chains(world):
+    """Matches that re-detect each keypoint where the previous match sent it chain like the flow."""
+    _, gt = world
+    flow = np.asarray(gt.flow, np.float64)
+    static = jnp.ones(gt.depth.shape, bool)
+    rng = np.random.default_rng(0)
+    N = 64
+    uv0 = np.zeros((S - 1, N, 2))
+    uv0[0] = rng.uniform(20, [108, 76], (N, 2))
+    uv1 = np.zeros_like(uv0)
+    for t in range(S - 1):
+        if t:
+            uv0[t] = uv1[t - 1]
+        sample = trajectory.bilinear(jnp.asarray(flow), jnp.full(N, t), jnp.asarray(uv0[t]))
+        uv1[t] = uv0[t] + np.asarray(sample)
+    valid = np.ones((S - 1, N), bool)
+    valid[2, :8] = False  # broken chains
+    perm = rng.permutation(N)  # matches come in any order
+    uv0, uv1, valid = uv0[:, perm], uv1[:, perm], valid[:, perm]
+    seeds = jnp.asarray(uv0[:1][:, np.argsort(perm)])
+    ok = jnp.ones((1, N), bool)
+    kf = jnp.zeros(1, jnp.int32)
+    with jax.enable_x64(True):
+        kp = trajectory.chain_keypoint_tracks(jnp.asarray(uv0), jnp.asarray(uv1), jnp.asarray(valid), static,
+                                              seeds, ok, kf, TRACK, radius=0.01)
+        fl = trajectory.chain_tracks(jnp.asarray(flow), static, seeds, ok, kf, TRACK)
+    both = np.asarray(kp.valid) & np.asarray(fl.valid)
+    assert both.sum() > 0.8 * np.asarray(fl.valid).sum() - 8 * 3
+    np.testing.assert_allclose(np.asarray(kp.uv)[both], np.asarray(fl.uv)[both], atol=1e-4)
+    assert not np.any(np.asarray(kp.valid)[:8, 3:])  # chain cut where the match is missing
+    keep = trajectory.keypoint_seeds(jnp.asarray([[5.0, 5.0], [1.0, 1.0]]), jnp.array([True, True]),
+                                     jnp.ones((96, 128)), jnp.ones((96, 128)), jnp.ones((96, 128), bool), TRACK)
+    np.testing.assert_array_equal(keep, [True, False])  # the second is inside the border
+
+
 def test_association_threshold_and_memory_landmarks():
     with jax.enable_x64(True):
         cfg = trajectory.AssociationConfig(tau_min=0.05, ratio=0.02)

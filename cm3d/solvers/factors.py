@@ -15,8 +15,9 @@ axis, padded to a capacity with ``weight = 0``; residuals and Jacobians are comp
 at once (``vmap``-free broadcasting), padding contributes nothing.
 
 Jacobians are taken with respect to the right perturbation ``T exp(ξ)`` (what :mod:`cm3d.solvers.lm`
-retracts with): analytic for the projection hot path (:func:`projection_linearize`), ``jax.jacfwd``
-for the few pose factors (:func:`pose_factor_jacobians`).
+retracts with): analytic for the projection hot path (:func:`projection_linearize`) and for the
+pose factors (:func:`pose_factor_jacobians`, ``J_r^{-1}`` via :func:`jlog`; its ``"autodiff"``
+variant takes ``jax.jacfwd`` through ``exp``/``log``).
 
 Also here: the paper's graph builder (:func:`build_graph`), adaptive outlier rejection
 (:func:`reject_outliers`), SVD re-orthonormalisation (:func:`orthonormalize_poses`) and a seeded

@@ -50,6 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.custom_batching import custom_vmap
 
 from cm3d.ops import se3
 from cm3d.solvers.factors import (
@@ -68,6 +69,7 @@ from cm3d.solvers.factors import (
 )
 
 LINEAR_SOLVERS = ("auto", "dense", "pcg")
+BATCHINGS = ("auto", "sequential", "native")
 BACKWARDS = ("implicit", "unrolled", "none")
 STOP_REASONS = ("running", "relative/absolute decrease", "gradient tolerance", "small cost change",
                 "lambda upper bound", "max iterations", "non-finite initial point")
@@ -90,7 +92,11 @@ class LMOptions:
     "unrolled" or "none"; unroll_steps: trials of the unrolled mode; implicit_cg_iterations /
     implicit_cg_tol: adjoint (and Newton) solves; implicit_damping: relative damping of their
     Gauss–Newton preconditioner; newton_steps: exact-Newton steps after LM (IRLS converges only
-    linearly with Huber outliers; implicit gradients need a tight optimum).
+    linearly with Huber outliers; implicit gradients need a tight optimum). batching: how
+    ``vmap`` runs the solver: "native" batches every operation (a ``while_loop`` over the whole
+    batch), "sequential" maps the problems one after another inside the program (on CPU the
+    batched gathers/scatters fall out of cache and run several times slower), "auto": sequential
+    on the CPU backend, native elsewhere.
     """
 
     max_iterations: int = 100
@@ -115,10 +121,13 @@ class LMOptions:
     implicit_cg_tol: float = 1e-8
     implicit_damping: float = 1e-9
     newton_steps: int = 0
+    batching: str = "auto"
 
     def __post_init__(self):
         if self.linear_solver not in LINEAR_SOLVERS:
             raise ValueError(f"LMOptions.linear_solver: unknown {self.linear_solver!r} {LINEAR_SOLVERS}")
+        if self.batching not in BATCHINGS:
+            raise ValueError(f"LMOptions.batching: unknown {self.batching!r} {BATCHINGS}")
         if self.backward not in BACKWARDS:
             raise ValueError(f"LMOptions.backward: unknown {self.backward!r} {BACKWARDS}")
         if self.max_iterations < 1 or self.max_linear_solves < 1 or self.unroll_steps < 1:
@@ -450,7 +459,6 @@ def factor_dense(graph, lin, st, lam, differentiable: bool = False) -> SchurSyst
     Ss = S * scale[:, None] * scale[None, :]
     Ss = Ss + 1e-13 * jnp.eye(Ss.shape[0], dtype=Ss.dtype)
     chol = jnp.linalg.cholesky(Ss)
-    N = D_pose.shape[0]
     return SchurSystem(Cinv, F, lin.W, D_pose, chol, scale, jnp.zeros((1, 6, 6), S.dtype), lam)
 
 
@@ -710,7 +718,9 @@ def _start(graph, init: Variables, st, options) -> _State:
     N, M = init.poses.shape[0], init.points.shape[0]
     zeros = lambda tree: jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), tree)  # noqa: E731
     lin0 = zeros(jax.eval_shape(lambda: linearize(graph, init, st)))
-    sys0 = zeros(jax.eval_shape(lambda: factor_dense(graph, lin0, st, jnp.ones((), dt)))) if options.newton_steps else None
+    sys0 = None
+    if options.newton_steps:
+        sys0 = zeros(jax.eval_shape(lambda: factor_dense(graph, lin0, st, jnp.ones((), dt))))
     z = jnp.zeros((), jnp.int32)
     return _State(x=init, lin=lin0, cand=init, pred=jnp.zeros((), dt), cand_newton=jnp.zeros((), bool),
                   first=jnp.ones((), bool), pending=jnp.ones((), bool),
@@ -743,8 +753,41 @@ def _run(graph: FactorGraph, init: Variables, options: LMOptions):
     return _finish(s, options), s, st
 
 
+def _sequential_batching(options: LMOptions) -> bool:
+    if options.batching == "auto":
+        return jax.default_backend() == "cpu"
+    return options.batching == "sequential"
+
+
+@functools.lru_cache(maxsize=None)
+def _batchable_run(options: LMOptions):
+    """``_run`` (result, last factorisation, structure) with a ``vmap`` rule that maps the batch
+    sequentially (``lax.map``) instead of batching every operation."""
+
+    @custom_vmap
+    def run(graph, init):
+        res, s, st = _run(graph, init, options)
+        return res, s.sys, st
+
+    @run.def_vmap
+    def _rule(axis_size, in_batched, graph, init):
+        args = jax.tree.map(lambda a, b: a if b else jnp.broadcast_to(a, (axis_size,) + a.shape),
+                            (graph, init), tuple(in_batched))
+        out = jax.lax.map(lambda gi: run(*gi), args)
+        return out, jax.tree.map(lambda _: True, out)
+
+    return run
+
+
+def _run_batchable(graph, init, options):
+    if _sequential_batching(options):
+        return _batchable_run(options)(graph, init)
+    res, s, st = _run(graph, init, options)
+    return res, s.sys, st
+
+
 def _solve_loop(graph: FactorGraph, init: Variables, options: LMOptions) -> LMResult:
-    return _run(graph, init, options)[0]
+    return _run_batchable(graph, init, options)[0]
 
 
 def _solve_unrolled(graph: FactorGraph, init: Variables, options: LMOptions) -> LMResult:
@@ -769,8 +812,8 @@ def _solve_implicit(options, graph, init):
 
 
 def _implicit_fwd(options, graph, init):
-    res, s, st = _run(graph, init, options)
-    return res, (graph, res.params, init, s.sys, st)
+    res, sys, st = _run_batchable(graph, init, options)
+    return res, (graph, res.params, init, sys, st)
 
 
 def _implicit_bwd(options, saved, ct: LMResult):
