@@ -13,6 +13,8 @@ from scipy.spatial import cKDTree
 from cm3d.ops.neighbors import (
     build_target_index,
     certified_nearest,
+    empty_cache,
+    exact_nearest,
     knn_graph,
     nearest_within_radius,
     radius_neighbors,
@@ -105,17 +107,26 @@ def test_walk_then_certified_search_is_exact():
     q = jnp.asarray(p + rng.normal(scale=0.03, size=p.shape).astype(np.float32))
     active = jnp.ones(N, bool)
 
+    q2 = q + jnp.asarray(rng.normal(scale=1e-3, size=p.shape).astype(np.float32))  # a small move
+
     @jax.jit
-    def run(index, q):
+    def run(index, q, q2):
         m = seed(index, q, active)
         m, d2 = walk_to_convergence(index, q, m)
-        return certified_nearest(index, q, m, d2, active, 0.2)
+        first = certified_nearest(index, q, m, d2, active, 0.2)
+        _, _, _, cache = exact_nearest(index, q, m, d2, active, 0.2, empty_cache(q))
+        m, d2 = walk_to_convergence(index, q2, m)
+        return first, exact_nearest(index, q2, m, d2, active, 0.2, cache)[:3]  # reuses the cache
 
-    pos, d2, searched = run(index, q)
-    idx = np.where(np.asarray(pos) >= 0, np.asarray(index.order)[np.clip(np.asarray(pos), 0, None)], -1)
-    d_ref, i_ref = cKDTree(p).query(np.asarray(q), distance_upper_bound=0.2)
-    np.testing.assert_array_equal(idx, np.where(np.isfinite(d_ref), i_ref, -1))
-    assert int(searched) < N // 2  # most matches are certified by the graph
+    tree = cKDTree(p)
+    first, second = run(index, q, q2)
+    for (pos, d2, searched), qq, most in zip((first, second), (q, q2), (N // 2, int(first[2]) // 2)):
+        idx = np.where(np.asarray(pos) >= 0, np.asarray(index.order)[np.clip(np.asarray(pos), 0, None)], -1)
+        d_ref, i_ref = tree.query(np.asarray(qq), distance_upper_bound=0.2)
+        np.testing.assert_array_equal(idx, np.where(np.isfinite(d_ref), i_ref, -1))
+        np.testing.assert_allclose(np.sqrt(np.asarray(d2))[np.isfinite(d_ref)], d_ref[np.isfinite(d_ref)],
+                                   rtol=1e-5, atol=1e-6)
+        assert int(searched) < most  # most matches are certified by the graph or by the cache
 
 
 def test_jit_vmap_invariance_and_empty():

@@ -18,8 +18,10 @@ The ICP correspondence search is a walk on the graph: a source point keeps its c
 and moves it to the closest of ``m``'s neighbours. When the walk stops at ``m`` with distance ``d``
 and ``2 d < rho[m]``, ``m`` is provably the exact nearest neighbour (any closer point would lie within
 ``2 d`` of ``m``, hence in its list); :func:`certified_nearest` checks that and searches only the
-remaining queries exactly: the 27 fine cells around the query when ``d`` is below a fine cell
-(about k candidates), else the 27 coarse cells.
+remaining queries exactly: the fine cells within ``1.3 d`` of the query when ``d`` is below a fine
+cell (about k candidates), else the coarse cells within it. :func:`exact_nearest` also keeps a
+:class:`NearestCache` of those searches: a query that moved less than half the gap between its
+nearest and second-nearest point keeps its answer (ICP's last iterations barely move).
 
 :class:`Grid` / :func:`radius_neighbors` / :func:`grid_nearest`: a plain uniform grid (traced cell)
 for the radius neighbourhoods of FPFH features and the ICP refinement of global registration.
@@ -184,10 +186,21 @@ def compact_apply(mask: jnp.ndarray, fn, init, chunk: int = 512):
     return lax.while_loop(cond, body, (jnp.int32(0), init))[1]
 
 
-def _gather_candidates(h: CellHash, start, count, key, j):
-    """First ``len(j)`` points (sorted positions) of the 27 cells around int keys (B, 3)
-    -> (cand (B, C), valid (B, C), total (B,) number of points in the 27 cells)."""
+def _cells_within(q, key, origin, cell, dmax):
+    """(B, 27) bool: which of the 27 cells around int keys (B, 3) of queries q (B, 3) come within
+    ``dmax`` (B,) of the query (box distance; a small margin keeps boundary cases in)."""
+    lo = origin + (key[:, None, :] + jnp.asarray(OFFSETS27)[None]).astype(q.dtype) * cell  # (B, 27, 3)
+    gap = jnp.maximum(jnp.maximum(lo - q[:, None, :], q[:, None, :] - (lo + cell)), 0.0)
+    return jnp.sum(gap * gap, axis=-1) <= (dmax[:, None] * (1 + 1e-4) + 1e-4 * cell) ** 2
+
+
+def _gather_candidates(h: CellHash, start, count, key, j, cell_mask=None):
+    """First ``len(j)`` points (sorted positions) of the 27 cells around int keys (B, 3) (only
+    those where ``cell_mask`` (B, 27), if given) -> (cand (B, C), valid (B, C), total (B,) number
+    of points in those cells)."""
     nb = hash_lookup(h, key[:, None, :] + jnp.asarray(OFFSETS27)[None])  # (B, 27)
+    if cell_mask is not None:
+        nb = jnp.where(cell_mask, nb, -1)
     nbc = jnp.clip(nb, 0, h.size - 1)
     cnt = jnp.where(nb >= 0, count[nbc], 0)
     st = start[nbc]
@@ -299,7 +312,11 @@ def build_target_index(points, valid=None, *, radius: float, k: int = 16, cell_f
     graph = jnp.where(has, graph, pos[:, None])
     dk = jnp.sqrt(jnp.where(has[:, -1], d2k[:, -1], jnp.inf))
     truncated = sval & (total > C)
-    rho = jnp.where(truncated | ~sval, 0.0, jnp.minimum(dk, h))
+    # The 27 fine cells around a point's cell hold every point closer than h + (its distance to
+    # its own cell's boundary), so a complete list is exact up to that or its k-th distance.
+    lo_cell = origin + fk[order].astype(dtype) * h
+    edge = jnp.min(jnp.minimum(sp - lo_cell, lo_cell + h - sp), axis=-1)
+    rho = jnp.where(truncated | ~sval, 0.0, jnp.minimum(dk, (h + jnp.maximum(edge, 0.0)) * (1 - 1e-4)))
 
     # PCA normals over the neighbour list (self included), as Open3D's estimate_normals.
     nbp = sp[graph]  # (n, k, 3)
@@ -336,50 +353,72 @@ def _coarse_key(index: TargetIndex, q):
     return _fine_keys(index.origin, q, index.fine_cell, index.sub)[1]
 
 
-def _exact_chunk(index: TargetIndex, q, radius, width: int = 128):
+def _top2(d2, cand):
+    """(best position, its squared distance, second smallest squared distance) per row."""
+    a = jnp.argmin(d2, axis=1)
+    dmin = jnp.take_along_axis(d2, a[:, None], 1)[:, 0]
+    second = jnp.min(jnp.where(jnp.arange(d2.shape[1])[None] == a[:, None], jnp.inf, d2), axis=1)
+    return jnp.take_along_axis(cand, a[:, None], 1)[:, 0], dmin, second
+
+
+def _exact_chunk(index: TargetIndex, q, radius, width: int = 128, dmax=None, with_second: bool = False):
     """Exact nearest within ``radius`` for queries q (B, 3) -> (pos (B,) or -1, squared dist (B,)).
 
-    The candidates are the points of the 27 coarse cells around each query, taken ``width`` at a
-    time (a while loop over passes, as many as the most crowded query needs).
+    The candidates are the points of the 27 coarse cells around each query that come within
+    ``bound = min(radius, dmax)`` (dmax (B,): a known upper bound of the nearest distance, up to
+    one coarse cell), taken ``width`` at a time (a while loop over passes, as many as the most
+    crowded query needs). with_second: also return a lower bound of the distance of every other
+    point (the second nearest scanned, at most ``bound``) and of the nearest point (at most ``bound``).
     """
     B = q.shape[0]
     ck = _coarse_key(index, q)
     r2 = jnp.asarray(radius, q.dtype) ** 2
+    cell = index.fine_cell * index.sub
+    bound = jnp.broadcast_to(jnp.asarray(radius, q.dtype), (B,))
+    if dmax is not None:
+        bound = jnp.minimum(jnp.maximum(bound, dmax) if with_second else bound, dmax)
+    bound = jnp.minimum(bound, cell)
+    cmask = _cells_within(q, ck, index.origin, cell, bound)
     j0 = jnp.arange(width, dtype=jnp.int32)
-    _, _, total = _gather_candidates(index.coarse, index.cell_start, index.cell_count, ck, j0[:1])
+    _, _, total = _gather_candidates(index.coarse, index.cell_start, index.cell_count, ck, j0[:1], cmask)
 
     def cond(c):
         return c[0] * width < jnp.max(total, initial=0)
 
     def body(c):
-        t, best, bd = c
-        cand, ok, _ = _gather_candidates(index.coarse, index.cell_start, index.cell_count, ck, t * width + j0)
+        t, best, bd, sd = c
+        cand, ok, _ = _gather_candidates(index.coarse, index.cell_start, index.cell_count, ck, t * width + j0, cmask)
         diff = index.points[cand] - q[:, None, :]
         d2 = jnp.where(ok, jnp.sum(diff * diff, axis=-1), jnp.inf)
-        a = jnp.argmin(d2, axis=1)
-        dmin = jnp.take_along_axis(d2, a[:, None], 1)[:, 0]
-        pmin = jnp.take_along_axis(cand, a[:, None], 1)[:, 0]
+        pmin, dmin, d2nd = _top2(d2, cand)
         better = (dmin < bd) | ((dmin == bd) & (pmin < best))
-        return t + 1, jnp.where(better, pmin, best), jnp.where(better, dmin, bd)
+        sd = jnp.minimum(jnp.minimum(jnp.maximum(bd, dmin), sd), d2nd)
+        return t + 1, jnp.where(better, pmin, best), jnp.minimum(bd, dmin), sd
 
-    init = (jnp.int32(0), jnp.full((B,), -1, jnp.int32), jnp.full((B,), jnp.inf, q.dtype))
-    _, best, bd = lax.while_loop(cond, body, init)
+    inf = jnp.full((B,), jnp.inf, q.dtype)
+    init = (jnp.int32(0), jnp.full((B,), -1, jnp.int32), inf, inf)
+    _, best, bd, sd = lax.while_loop(cond, body, init)
     inside = bd <= r2
-    return jnp.where(inside, best, -1), jnp.where(inside, bd, jnp.inf)
+    out = jnp.where(inside, best, -1), jnp.where(inside, bd, jnp.inf)
+    if with_second:
+        b2 = bound * bound
+        return out + (jnp.minimum(bd, b2), jnp.minimum(sd, b2))
+    return out
 
 
-def _fine_chunk(index: TargetIndex, q, width: int = 128):
-    """Nearest among the first ``width`` points of the 27 *fine* cells around queries q (B, 3)
-    -> (pos (B,) or -1, squared distance (B,), complete (B,): all points of the 27 cells were seen,
-    so the answer is exact for a query whose nearest neighbour is within one fine cell)."""
+def _fine_chunk(index: TargetIndex, q, dmax, width: int = 48):
+    """Nearest among the first ``width`` points of the *fine* cells around queries q (B, 3) that
+    come within dmax (B,) (<= one fine cell, at least a known upper bound of the nearest distance)
+    -> (pos (B,) or -1, squared distance (B,), lower bound of the squared distance of every other
+    point (B,), complete (B,): all points of those cells were seen, so the answer is exact)."""
     fk = cell_coords(q, index.origin, index.fine_cell)
+    cmask = _cells_within(q, fk, index.origin, index.fine_cell, dmax)
     cand, ok, total = _gather_candidates(index.fine, index.fine_start, index.fine_count, fk,
-                                         jnp.arange(width, dtype=jnp.int32))
+                                         jnp.arange(width, dtype=jnp.int32), cmask)
     d2 = jnp.where(ok, jnp.sum((index.points[cand] - q[:, None, :]) ** 2, axis=-1), jnp.inf)
-    a = jnp.argmin(d2, axis=1)
-    dmin = jnp.take_along_axis(d2, a[:, None], 1)[:, 0]
+    p, dmin, second = _top2(d2, cand)
     has = jnp.isfinite(dmin)
-    return jnp.where(has, jnp.take_along_axis(cand, a[:, None], 1)[:, 0], -1), dmin, total <= width
+    return jnp.where(has, p, -1), dmin, jnp.minimum(second, dmax * dmax), total <= width
 
 
 def _check_radius(index: TargetIndex, radius):
@@ -408,11 +447,15 @@ def nearest_within_radius(index: TargetIndex, queries, radius=None, valid=None, 
 
 
 def seed(index: TargetIndex, q, active, chunk: int = 512):
-    """Initial matches (sorted positions, (N,)) for queries q (N, 3): the seed of the query's coarse
-    cell, or for queries in an empty cell the nearest seed of the 26 cells around (-1 if none)."""
+    """Initial matches (sorted positions, (N,)) for queries q (N, 3): a point of the query's fine
+    cell, else the seed of its coarse cell, or for queries in an empty coarse cell the nearest seed
+    of the 26 cells around (-1 if none)."""
+    fs = hash_lookup(index.fine, cell_coords(q, index.origin, index.fine_cell))
+    mf = jnp.where(fs >= 0, index.fine_start[jnp.clip(fs, 0, index.fine.size - 1)], -1)
     ck = _coarse_key(index, q)
     s = hash_lookup(index.coarse, ck)
     m = jnp.where(s >= 0, index.cell_seed[jnp.clip(s, 0, index.coarse.size - 1)], -1)
+    m = jnp.where(mf >= 0, mf, m)
 
     def around(i, ok):
         qq = q[i]
@@ -439,28 +482,66 @@ def walk(index: TargetIndex, q, m):
     return jnp.where(has, new, -1), jnp.where(has, dm, jnp.inf), has & (new != m)
 
 
-def walk_to_convergence(index: TargetIndex, q, m, max_steps: int = 16):
-    """Walk steps until no match moves (at most ``max_steps``) -> (m, squared distance)."""
+def walk_to_convergence(index: TargetIndex, q, m, max_steps: int = 16, full_steps: int = 2,
+                        chunk: int = 256):
+    """Walk steps until no match moves (at most ``max_steps``) -> (m, squared distance).
 
-    def cond(c):
-        return (c[3] < max_steps) & c[2]
+    The first ``full_steps`` steps move every query; the few still moving after them walk on in
+    compacted chunks (the tail of a walk is short but would otherwise cost full steps)."""
+    full = max(1, min(full_steps, max_steps))
+    for _ in range(full):
+        m, d2, ch = walk(index, q, m)
+    if max_steps <= full:
+        return m, d2
 
-    def body(c):
-        m, _, _, it = c
-        m2, d2, ch = walk(index, q, m)
-        return m2, d2, jnp.any(ch), it + 1
+    def fn(i, ok):
+        qi = q[i]
 
-    m, d2, _ = walk(index, q, m)[:3]
-    m, d2, _, _ = lax.while_loop(cond, body, (m, d2, jnp.bool_(True), jnp.int32(1)))
-    return m, d2
+        def cond(c):
+            return (c[3] < max_steps - full) & c[2]
+
+        def body(c):
+            mm, _, _, it = c
+            m2, dd, chi = walk(index, qi, mm)
+            return m2, dd, jnp.any(chi & ok), it + 1
+
+        mm, dd, _, _ = lax.while_loop(cond, body, (m[i], d2[i], jnp.bool_(True), jnp.int32(0)))
+        return mm, dd
+
+    return compact_apply(ch, fn, (m, d2), chunk)
+
+
+@struct.dataclass
+class NearestCache:
+    """The last exact grid-search answers of a set of queries, reusable while a query stays within
+    ``slack`` of where it was searched: q (N, 3) query positions then, pos (N,) the answer (sorted
+    position, -1: nothing within the radius), slack (N,) metres (< 0: nothing cached)."""
+
+    q: jnp.ndarray
+    pos: jnp.ndarray
+    slack: jnp.ndarray
+
+
+def empty_cache(q) -> NearestCache:
+    """A :class:`NearestCache` for queries like q (N, 3) that holds nothing."""
+    return NearestCache(q=jnp.zeros_like(q), pos=jnp.full(q.shape[:1], -1, jnp.int32),
+                        slack=jnp.full(q.shape[:1], -1.0, q.dtype))
 
 
 def certified_nearest(index: TargetIndex, q, m, d2, active, radius, chunk: int = 512):
     """Exact nearest within ``radius`` given walk matches (m, d2): keep a match when the graph
     certifies it (``2 d < rho[m]``: m is the nearest; or ``d + radius < rho[m]`` with ``d > radius``:
-    nothing within radius), search the rest exactly: the 27 fine cells when the walk distance is
-    below the fine cell (and they are not crowded), else the 27 coarse cells.
+    nothing within radius), search the rest exactly: the fine cells within the walk distance when
+    it is below the fine cell (and they are not crowded), else the coarse cells.
     -> (pos (N,) sorted position or -1, squared distance (N,) or inf, number searched exactly)."""
+    return exact_nearest(index, q, m, d2, active, radius, empty_cache(q), chunk)[:3]
+
+
+def exact_nearest(index: TargetIndex, q, m, d2, active, radius, cache: NearestCache, chunk: int = 512):
+    """:func:`certified_nearest` that also reuses the answers of a :class:`NearestCache` (a query
+    that moved by ``delta < slack`` since its search keeps its answer: every other point was at
+    least ``2 slack`` farther, resp. nothing within ``radius + slack``) and returns the cache
+    updated with this call's searches -> (pos, squared distance, number searched, cache)."""
     mc = jnp.clip(m, 0)
     rho = jnp.where(m >= 0, index.rho[mc], 0.0)
     d = jnp.sqrt(d2)
@@ -471,21 +552,44 @@ def certified_nearest(index: TargetIndex, q, m, d2, active, radius, chunk: int =
     pos = jnp.where(inside, m, -1)
     dist2 = jnp.where(inside, d2, jnp.inf)
     if index.points.shape[0] == 0:
-        return pos, dist2, jnp.int32(0)
-    # A walk distance d <= fine cell bounds the nearest distance, so the 27 fine cells around the
-    # query hold the nearest point (~k candidates); the rest searches the 27 coarse cells.
-    r2 = jnp.asarray(radius, q.dtype) ** 2
-    near = need & (d <= index.fine_cell)
+        return pos, dist2, jnp.int32(0), cache
+    r = jnp.asarray(radius, q.dtype)
+    r2 = r * r
+    # Cached answers still valid.
+    eps = 8 * jnp.finfo(q.dtype).eps * (jnp.max(jnp.abs(q), axis=-1) + r)  # rounding margin
+    reuse = need & (jnp.sqrt(jnp.sum((q - cache.q) ** 2, axis=-1)) + eps < cache.slack)
+    cd2 = jnp.sum((index.points[jnp.clip(cache.pos, 0)] - q) ** 2, axis=-1)
+    hit = reuse & (cache.pos >= 0) & (cd2 <= r2)
+    pos = jnp.where(hit, cache.pos, pos)
+    dist2 = jnp.where(hit, cd2, dist2)
+    need = need & ~reuse
+    # A walk distance d <= fine cell bounds the nearest distance, so the fine cells within d of the
+    # query (scanned a little farther, for the cache's slack) hold the nearest point; the rest
+    # searches the coarse cells.
+    h = index.fine_cell
+    near = need & (d <= h)
+
+    def slack(p, dd, lb2):
+        return jnp.where(p >= 0, 0.5 * (jnp.sqrt(lb2) - jnp.sqrt(dd)), jnp.sqrt(lb2) - r)
 
     def fine(i, ok):
-        p, dd, complete = _fine_chunk(index, q[i])
+        p, dd, lb2, complete = _fine_chunk(index, q[i], jnp.minimum(h, 1.3 * d[i]))
         inside = dd <= r2
-        return jnp.where(inside, p, -1), jnp.where(inside, dd, jnp.inf), complete
+        p = jnp.where(inside, p, -1)
+        return p, jnp.where(inside, dd, jnp.inf), complete, jnp.where(inside, slack(p, dd, lb2), -1.0)
 
-    pos, dist2, complete = compact_apply(near, fine, (pos, dist2, jnp.zeros_like(need)), chunk)
+    init = (pos, dist2, jnp.zeros_like(need), jnp.full_like(d, -1.0))
+    pos, dist2, complete, sl = compact_apply(near, fine, init, chunk)
     coarse = need & ~(near & complete)
-    pos, dist2 = compact_apply(coarse, lambda i, ok: _exact_chunk(index, q[i], radius), (pos, dist2), chunk)
-    return pos, dist2, jnp.sum(need).astype(jnp.int32)
+
+    def far(i, ok):
+        p, dd, lb1, lb2 = _exact_chunk(index, q[i], radius, dmax=1.3 * d[i], with_second=True)
+        return p, dd, jnp.where(p >= 0, slack(p, dd, lb2), jnp.sqrt(lb1) - r)
+
+    pos, dist2, sl = compact_apply(coarse, far, (pos, dist2, sl), max(chunk // 4, 1))
+    new = NearestCache(q=jnp.where(need[:, None], q, cache.q), pos=jnp.where(need, pos, cache.pos),
+                       slack=jnp.where(need, sl, cache.slack))
+    return pos, dist2, jnp.sum(need).astype(jnp.int32), new
 
 
 # ----------------------------------------------------------------------------------------------

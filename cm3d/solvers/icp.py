@@ -7,8 +7,11 @@ walk step per iteration (~16 candidates instead of a grid or tree search). The w
 local minimum of the k-NN graph, so once this *walk phase* has settled (``walk_tolerance`` x the
 thresholds) an *exact phase* iterates with exact correspondences: matches the k-NN graph certifies
 are kept, the others are searched on the fine / coarse grid
-(:func:`cm3d.ops.neighbors.certified_nearest`). It converges to exact ICP's fixed point (Open3D's),
-and the reported fitness, inlier count and inlier RMSE are exact (what ``registration_icp`` reports).
+(:func:`cm3d.ops.neighbors.exact_nearest`, whose cache keeps the answers of points that barely
+moved). It stops where exact ICP (Open3D's) stops, and the reported fitness, inlier count and
+inlier RMSE are exact (what ``registration_icp`` reports). Before the full cloud, coarse stages run
+the same ICP on every 16th and every 4th source point (``subsample``, ``levels``), so most
+iterations cost a fraction of a full one.
 
 One iteration (as Open3D's ``RegistrationICP``): estimate the update from the current
 correspondences, apply it, re-match, and stop when fitness and inlier RMSE change by less than
@@ -33,7 +36,8 @@ from jax import lax
 from cm3d.ops.neighbors import (
     TargetIndex,
     build_target_index,
-    certified_nearest,
+    empty_cache,
+    exact_nearest,
     seed,
     walk,
     walk_to_convergence,
@@ -46,6 +50,7 @@ __all__ = ["ICPOptions", "ICPResult", "TargetIndex", "build_target_index", "icp"
 
 _METHODS = ("point_to_point", "point_to_plane")
 _KERNELS = ("none", "huber", "cauchy", "tukey")
+_MIN_SUBSAMPLE = 256  # fewest points of a subsampled coarse stage
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,8 +65,11 @@ class ICPOptions:
     seed_steps: walk steps allowed to settle the seeds; walk_steps: walk steps per iteration;
     exact_iterations: at most this many final iterations with exact correspondences once the walk
     phase has converged to ``walk_tolerance`` x the relative thresholds (0: walk only, to the
-    thresholds themselves; the reported statistics are exact either way). ``max_iterations``
-    bounds both phases together.
+    thresholds themselves; the reported statistics are exact either way).
+    subsample / levels: coarse-to-fine over the source: up to ``levels - 1`` coarse stages on every
+    ``subsample**l``-th source point (coarsest first, only while that leaves >= 256 points), each
+    to ``walk_tolerance`` x the thresholds, before the full cloud (1 / levels=1: full cloud only).
+    ``max_iterations`` bounds all stages and phases together (``iterations`` counts them all).
     """
 
     method: str = "point_to_plane"
@@ -75,7 +83,9 @@ class ICPOptions:
     seed_steps: int = 16
     walk_steps: int = 1
     exact_iterations: int = 100
-    walk_tolerance: float = 100.0
+    walk_tolerance: float = 10.0
+    subsample: int = 4
+    levels: int = 3
 
     def __post_init__(self):
         if self.method not in _METHODS:
@@ -90,7 +100,8 @@ class ICPOptions:
 class ICPResult:
     """transform (4, 4) source -> target (``[s R, t]`` with scale); scale (); fitness () inliers /
     valid source points; inlier_count (); inlier_rmse () metres (0 without inliers); iterations ();
-    converged () bool; exact_searches () source points the final grid search had to visit."""
+    converged () bool; exact_searches () grid searches of source points in the exact phase (all its
+    iterations together; matches certified by the graph or the cache need none)."""
 
     transform: jnp.ndarray
     scale: jnp.ndarray
@@ -186,49 +197,62 @@ def icp(source, index: TargetIndex, init=None, valid=None, options: ICPOptions =
                          inlier_rmse=z, iterations=jnp.int32(0), converged=jnp.bool_(True),
                          exact_searches=jnp.int32(0))
 
-    q = _apply(T0, src)
-    m = seed(index, q, sv)
-    m, d2 = walk_to_convergence(index, q, m, o.seed_steps)
-    inl = sv & (m >= 0) & (d2 <= r2)
-    fit, rmse, _ = _stats(d2, inl, nvalid)
-
-    def cond(c):
-        _, _, _, _, _, it, done = c
-        return (it < o.max_iterations) & ~done
-
-    def body(c):
-        T, m, d2, fit, rmse, it, _ = c
+    def update(T, src, m, inl):
         q = _apply(T, src)
-        inl = sv & (m >= 0) & (d2 <= r2)
         mc = jnp.clip(m, 0)
         p = index.points[mc]
         if o.method == "point_to_plane":
-            U = point_to_plane_update(q, p, index.normals[mc], inl, o)
-        else:
-            U = _update_point_to_point(q, p, inl, o)
-        T = U @ T
-        q = _apply(T, src)
-        for _ in range(o.walk_steps):
-            m, d2, _ = walk(index, q, m)
-        inl = sv & (m >= 0) & (d2 <= r2)
-        fit2, rmse2, _ = _stats(d2, inl, nvalid)
-        tol = o.walk_tolerance if o.exact_iterations else 1.0
-        done = ((jnp.abs(fit2 - fit) < o.relative_fitness * tol) & (jnp.abs(rmse2 - rmse) < o.relative_rmse * tol))
-        return T, m, d2, fit2, rmse2, it + 1, done
+            return point_to_plane_update(q, p, index.normals[mc], inl, o) @ T
+        return _update_point_to_point(q, p, inl, o) @ T
 
-    init_c = (T0, m, d2, fit, rmse, jnp.int32(0), jnp.bool_(False))
-    T, m, d2, fit, rmse, it, done = lax.while_loop(cond, body, init_c)
+    def walk_phase(src, sv, T0, tol, max_it):
+        """Seed, walk to a local minimum, then iterate (update, walk) until fitness and RMSE change
+        by less than ``tol`` x the thresholds (or ``max_it`` iterations)."""
+        nv = jnp.sum(sv)
+        q = _apply(T0, src)
+        m, d2 = walk_to_convergence(index, q, seed(index, q, sv), o.seed_steps)
+        fit, rmse, _ = _stats(d2, sv & (m >= 0) & (d2 <= r2), nv)
+
+        def cond(c):
+            return (c[5] < max_it) & ~c[6]
+
+        def body(c):
+            T, m, d2, fit, rmse, it, _ = c
+            T = update(T, src, m, sv & (m >= 0) & (d2 <= r2))
+            q = _apply(T, src)
+            for _ in range(o.walk_steps):
+                m, d2, _ = walk(index, q, m)
+            fit2, rmse2, _ = _stats(d2, sv & (m >= 0) & (d2 <= r2), nv)
+            done = (jnp.abs(fit2 - fit) < o.relative_fitness * tol) & (jnp.abs(rmse2 - rmse) < o.relative_rmse * tol)
+            return T, m, d2, fit2, rmse2, it + 1, done
+
+        return lax.while_loop(cond, body, (T0, m, d2, fit, rmse, jnp.int32(0), jnp.bool_(False)))
+
+    # Coarse stages: the same ICP on every s^l-th source point, coarsest first, each to
+    # walk_tolerance x the thresholds with at most half the iterations left, brings T close at a
+    # fraction of the cost.
+    it0 = jnp.int32(0)
+    strides = []
+    if o.subsample > 1:
+        while src.shape[0] // (o.subsample ** (len(strides) + 1)) >= _MIN_SUBSAMPLE and len(strides) < o.levels - 1:
+            strides.append(o.subsample ** (len(strides) + 1))
+    for st in reversed(strides):
+        T0, *_, it_l, _ = walk_phase(src[::st], sv[::st], T0, o.walk_tolerance, (o.max_iterations - it0) // 2)
+        it0 = it0 + it_l
+    tol = o.walk_tolerance if o.exact_iterations else 1.0
+    T, m, d2, fit, rmse, it, done = walk_phase(src, sv, T0, tol, o.max_iterations - it0)
+    it = it + it0
 
     # Exact phase: the walk may stop at a local minimum of the k-NN graph, so the last iterations
     # use exact correspondences (certified walk matches, grid search for the rest) to reach the
     # fixed point of exact ICP (Open3D's).
-    def exact_match(T, m, d2):
+    def exact_match(T, m, d2, cache):
         q = _apply(T, src)
         m, d2, _ = walk(index, q, m)
-        pos, dd2, searched = certified_nearest(index, q, m, d2, sv, r)
-        return jnp.where(pos >= 0, pos, m), jnp.where(pos >= 0, dd2, d2), pos, dd2, searched
+        pos, dd2, searched, cache = exact_nearest(index, q, m, d2, sv, r, cache)
+        return jnp.where(pos >= 0, pos, m), jnp.where(pos >= 0, dd2, d2), pos, dd2, searched, cache
 
-    m, d2, pos, dd2, searched = exact_match(T, m, d2)
+    m, d2, pos, dd2, searched, cache = exact_match(T, m, d2, empty_cache(src))
     inl = sv & (pos >= 0)
     fit, rmse, _ = _stats(jnp.where(inl, dd2, 0.0), inl, nvalid)
 
@@ -236,23 +260,16 @@ def icp(source, index: TargetIndex, init=None, valid=None, options: ICPOptions =
         return (c[-3] < o.exact_iterations) & ~c[-2] & (c[-1] < o.max_iterations)
 
     def body_x(c):
-        T, m, d2, pos, dd2, fit, rmse, searched, k, _, it = c
-        q = _apply(T, src)
-        inl = sv & (pos >= 0)
-        pc = jnp.clip(pos, 0)
-        if o.method == "point_to_plane":
-            U = point_to_plane_update(q, index.points[pc], index.normals[pc], inl, o)
-        else:
-            U = _update_point_to_point(q, index.points[pc], inl, o)
-        T = U @ T
-        m, d2, pos, dd2, searched = exact_match(T, m, d2)
+        T, m, d2, pos, dd2, fit, rmse, searched, cache, k, _, it = c
+        T = update(T, src, pos, sv & (pos >= 0))
+        m, d2, pos, dd2, s2, cache = exact_match(T, m, d2, cache)
         inl = sv & (pos >= 0)
         fit2, rmse2, _ = _stats(jnp.where(inl, dd2, 0.0), inl, nvalid)
         done = (jnp.abs(fit2 - fit) < o.relative_fitness) & (jnp.abs(rmse2 - rmse) < o.relative_rmse)
-        return T, m, d2, pos, dd2, fit2, rmse2, searched, k + 1, done, it + 1
+        return T, m, d2, pos, dd2, fit2, rmse2, searched + s2, cache, k + 1, done, it + 1
 
-    init_x = (T, m, d2, pos, dd2, fit, rmse, searched, jnp.int32(0), jnp.bool_(False), it)
-    T, m, d2, pos, dd2, fit, rmse, searched, k, done_x, it = lax.while_loop(cond_x, body_x, init_x)
+    init_x = (T, m, d2, pos, dd2, fit, rmse, searched, cache, jnp.int32(0), jnp.bool_(False), it)
+    T, m, d2, pos, dd2, fit, rmse, searched, _, k, done_x, it = lax.while_loop(cond_x, body_x, init_x)
     inl = sv & (pos >= 0)
     fit, rmse, cnt = _stats(jnp.where(inl, dd2, 0.0), inl, nvalid)
     scale = jnp.cbrt(jnp.linalg.det(T[:3, :3]))
