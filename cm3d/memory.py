@@ -5,7 +5,15 @@ cloud (``points``, ``normals``, ``conf``, ``colors``, ``point_valid``; voxel dow
 map's own frame and scale), its 3D descriptor ``cloud_desc`` and up to ``max_keyframes`` keyframe
 descriptors ``kf_desc`` with hash codes ``kf_codes``. The *global feature table* is the flat view
 ``kf_desc.reshape(max_maps * max_keyframes, dim)`` with ``map_id = row // max_keyframes``
-(:func:`global_table`), so it never goes out of sync with the maps.
+(:func:`global_table`), so it never goes out of sync with the maps. Each map also holds up to
+``max_keypoints`` 3D keypoints (local RootSIFT descriptors lifted to the map frame); its points
+are kept sorted by grid cell (:func:`sort_by_cell`) for neighbour search by binary search.
+
+Recognition (:func:`identify`, pure and vmappable over queries): hashed 2D :func:`recall` of
+``top_k`` candidates -> keypoint matching + Sim(3) RANSAC per candidate -> Sim(3) ICP of the best,
+accepted on keypoint inliers, ICP inlier count / fitness / RMSE and colour agreement
+(:func:`verify`). :func:`remember` then updates the recalled map (:func:`update_map`) or stores a
+new one. Every visit has its own unknown scale, so all transforms are Sim(3).
 
 Capacity policy: inserting into a full bank is refused. The pure :func:`insert_map` returns the
 bank unchanged and ``map_id = -1``; the host-side :func:`add_map` raises :class:`MemoryFullError`.
@@ -34,7 +42,10 @@ from cm3d.data.atomic import atomic_write
 from cm3d.ops import descriptors
 
 MAGIC = b"CM3DMEM\x00"
-FORMAT_VERSION = 1
+GRID_CELL = 1.5  # a map's points are stored sorted by grid cells of this many map voxels (see
+# sort_by_cell); the verifying ICP searches the 27 cells around a point, so its correspondence
+# distance is one cell
+FORMAT_VERSION = 2  # 2: 3D keypoints (kp_points, kp_desc, kp_valid)
 
 
 class MemoryFullError(RuntimeError):
@@ -63,11 +74,33 @@ class MemoryConfig:
     voxel_resolution: float = 60.0  # map voxel = largest extent / this (grown while over capacity)
     min_conf_quantile: float = 0.3  # static points: confidence above this quantile of the sequence
     pixel_stride: int = 4  # static points: every stride-th pixel
-    scales: tuple[float, ...] = (0.7, 1.0, 1.4)  # query -> map scale hypotheses for registration
-    min_fitness: float = 0.35  # verification: share of query voxels with a map voxel nearby
-    max_rmse: float = 0.6  # verification: inlier RMSE, in map voxels
+    min_fitness: float = 0.4  # verification: share of the query's ICP points with a map point nearby
+    max_rmse: float = 0.75  # verification: ICP inlier RMSE, in map voxels
     normal_radius: float = 0.2  # neighbourhood cell for map normals (map units: VGGT-normalised)
-    min_inliers: int = 150  # verification: absolute number of inlier voxels
+    min_inliers: int = 100  # verification: absolute number of ICP inliers
+    max_keypoints: int = 512  # 3D keypoints (local descriptors lifted to the map frame) per map
+    keypoint_dim: int = 128  # local descriptor size (RootSIFT)
+    ratio: float = 0.85  # keypoint matching: Lowe ratio against the best match elsewhere in 3D
+    ransac_hypotheses: int = 256  # Sim(3) RANSAC: 3-point hypotheses per candidate
+    ransac_distance: float = 2.0  # keypoint inlier distance, in map voxels
+    min_keypoint_inliers: int = 7  # verification: RANSAC inliers among keypoint matches
+    scale_range: tuple[float, float] = (0.25, 4.0)  # plausible query -> map scale ratios
+    icp_points: int = 256  # query voxels used by the verifying ICP (an even subsample)
+    icp_iterations: int = 5
+    max_colour_difference: float = 40.0  # RGB (0-255) distance for a colour-consistent ICP inlier
+    min_colour_agreement: float = 0.6  # verification: share of colour-consistent ICP inliers
+    grid_per_cell: int = 3  # ICP neighbour search: points looked at per grid cell (see GRID_CELL)
+    verification: str = "full"  # "none" (2D recall only), "keypoints" (+ 3D RANSAC), "full" (+ ICP)
+
+    def __post_init__(self):
+        if self.verification not in ("none", "keypoints", "full"):
+            raise ValueError(f"MemoryConfig.verification: unknown {self.verification!r} (none, keypoints, full)")
+        if self.top_k < 1 or self.max_maps < 1 or self.max_points < 1 or self.max_keyframes < 1:
+            raise ValueError("MemoryConfig: top_k, max_maps, max_points and max_keyframes must be >= 1")
+        if self.max_keypoints < 3 or self.icp_points < 3 or self.ransac_hypotheses < 1:
+            raise ValueError("MemoryConfig: max_keypoints and icp_points must be >= 3, ransac_hypotheses >= 1")
+        if not 0 < self.scale_range[0] < self.scale_range[1]:
+            raise ValueError(f"MemoryConfig.scale_range: need 0 < lo < hi, got {self.scale_range}")
 
 
 @struct.dataclass
@@ -87,6 +120,9 @@ class MemoryBank:
     visits: jax.Array  # (M,) int32: how many sequences built or updated the map
     voxel_size: jax.Array  # (M,) float32: the map's voxel size (its own units)
     planes: jax.Array  # (bits, D2) float32: the LSH hyperplanes the codes were made with
+    kp_points: jax.Array  # (M, N, 3) float32: 3D keypoints in the map frame (N = max_keypoints)
+    kp_desc: jax.Array  # (M, N, Dk) float32: their unit local descriptors
+    kp_valid: jax.Array  # (M, N) bool
 
     @property
     def num_maps(self) -> jax.Array:
@@ -106,12 +142,72 @@ def empty(cfg: MemoryConfig = MemoryConfig()) -> MemoryBank:
         kf_codes=jnp.zeros((M, K, cfg.hash_bits // 32), jnp.uint32), kf_valid=jnp.zeros((M, K), bool),
         map_valid=jnp.zeros((M,), bool), visits=jnp.zeros((M,), jnp.int32), voxel_size=jnp.zeros((M,), jnp.float32),
         planes=descriptors.hash_planes(cfg.image_dim, cfg.hash_bits, cfg.hash_seed).astype(jnp.float32),
+        kp_points=jnp.zeros((M, cfg.max_keypoints, 3), jnp.float32),
+        kp_desc=jnp.zeros((M, cfg.max_keypoints, cfg.keypoint_dim), jnp.float32),
+        kp_valid=jnp.zeros((M, cfg.max_keypoints), bool),
     )
 
 
 @struct.dataclass
+class Keypoints:
+    """3D keypoints of a sequence or map in its own frame: points (N, 3), unit local descriptors
+    desc (N, Dk), valid (N,)."""
+
+    points: jax.Array
+    desc: jax.Array
+    valid: jax.Array
+
+
+def lift_keypoints(uv, desc, valid, depth, K, cam_to_world, capacity: int) -> Keypoints:
+    """Detected keypoints lifted to 3D with the prior depth and poses, up to ``capacity``.
+
+    uv (S, N, 2) pixels, desc (S, N, Dk), valid (S, N) (per frame, strongest first: e.g.
+    :func:`cm3d.ops.keypoints.detect_sequence` on static pixels); depth (S, H, W); K (S, 3, 3);
+    cam_to_world (S, 4, 4). A keypoint is kept when the depth at its pixel is positive and finite;
+    the kept ones are taken round robin over frames (each frame's strongest first), so every
+    frame is represented. Returns :class:`Keypoints` with N = ``capacity``.
+    """
+    uv, desc, valid, depth, K, cam_to_world = (jnp.asarray(a) for a in (uv, desc, valid, depth, K, cam_to_world))
+    S, N = valid.shape
+    H, W = depth.shape[1:]
+    ui = jnp.clip(jnp.round(uv[..., 0]).astype(jnp.int32), 0, W - 1)
+    vi = jnp.clip(jnp.round(uv[..., 1]).astype(jnp.int32), 0, H - 1)
+    d = depth[jnp.arange(S)[:, None], vi, ui]
+    ok = valid & (d > 0) & jnp.isfinite(d)
+    pix = jnp.stack([uv[..., 0], uv[..., 1], jnp.ones_like(uv[..., 0])], -1)
+    ray = jnp.einsum("sij,snj->sni", jnp.linalg.inv(K), pix)
+    cam = ray * jnp.where(ok, d, 0.0)[..., None]
+    world = jnp.einsum("sij,snj->sni", cam_to_world[:, :3, :3], cam) + cam_to_world[:, None, :3, 3]
+    rank = jnp.cumsum(ok, axis=1) - 1
+    priority = jnp.where(ok, rank * S + jnp.arange(S)[:, None], S * N + 1).reshape(-1)
+    order = jnp.argsort(priority, stable=True)
+    order = order[jnp.arange(capacity) % (S * N)]
+    kv = ok.reshape(-1)[order] & (jnp.arange(capacity) < S * N)
+    return Keypoints(points=jnp.where(kv[:, None], world.reshape(-1, 3)[order], 0.0),
+                     desc=jnp.where(kv[:, None], desc.reshape(S * N, -1)[order], 0.0), valid=kv)
+
+
+def _fit_keypoints(kp: "Keypoints | None", capacity: int, dim: int) -> Keypoints:
+    """Keypoints padded (invalid) or cut to ``capacity`` (static shapes); None gives none."""
+    if kp is None:
+        return Keypoints(jnp.zeros((capacity, 3), jnp.float32), jnp.zeros((capacity, dim), jnp.float32),
+                         jnp.zeros((capacity,), bool))
+    n = kp.valid.shape[-1]
+    if kp.desc.shape[-1] != dim:
+        raise ValueError(f"keypoint descriptors: expected dimension {dim}, got {kp.desc.shape[-1]}")
+    if n >= capacity:
+        return Keypoints(kp.points[:capacity].astype(jnp.float32), kp.desc[:capacity].astype(jnp.float32),
+                         kp.valid[:capacity].astype(bool))
+    pad = capacity - n
+    return Keypoints(jnp.pad(jnp.asarray(kp.points, jnp.float32), ((0, pad), (0, 0))),
+                     jnp.pad(jnp.asarray(kp.desc, jnp.float32), ((0, pad), (0, 0))),
+                     jnp.pad(jnp.asarray(kp.valid, bool), (0, pad)))
+
+
+@struct.dataclass
 class MapEntry:
-    """One map's contents, already at the bank's capacities (P points, K keyframes)."""
+    """One map's contents, already at the bank's capacities (P points, K keyframes); ``keypoints``
+    may have any capacity (padded or cut to the bank's when stored) or be None (no keypoints)."""
 
     points: jax.Array  # (P, 3)
     normals: jax.Array  # (P, 3)
@@ -122,6 +218,7 @@ class MapEntry:
     kf_valid: jax.Array  # (K,)
     cloud_desc: jax.Array  # (D3,)
     voxel_size: jax.Array  # ()
+    keypoints: Keypoints | None = None  # (Nq,) 3D keypoints in the entry's frame
 
 
 def insert_map(bank: MemoryBank, entry: MapEntry) -> tuple[MemoryBank, jax.Array]:
@@ -131,17 +228,24 @@ def insert_map(bank: MemoryBank, entry: MapEntry) -> tuple[MemoryBank, jax.Array
     slot = jnp.argmax(free)
     ok = free[slot]
     codes = descriptors.hash_codes(entry.kf_desc, bank.planes)
+    kp = _fit_keypoints(entry.keypoints, bank.kp_valid.shape[1], bank.kp_desc.shape[2])
+    vs = jnp.maximum(jnp.asarray(entry.voxel_size, jnp.float32), 1e-12)
+    points, point_valid, normals, conf, colors = sort_by_cell(
+        jnp.asarray(entry.points, jnp.float32), jnp.asarray(entry.point_valid, bool), vs * GRID_CELL,
+        jnp.asarray(entry.normals), jnp.asarray(entry.conf), jnp.asarray(entry.colors))
 
     def put(field, value):
         return field.at[slot].set(jnp.where(ok, value.astype(field.dtype), field[slot]))
 
     new = bank.replace(
-        points=put(bank.points, entry.points), normals=put(bank.normals, entry.normals),
-        conf=put(bank.conf, entry.conf), colors=put(bank.colors, entry.colors),
-        point_valid=put(bank.point_valid, entry.point_valid), cloud_desc=put(bank.cloud_desc, entry.cloud_desc),
+        points=put(bank.points, points), normals=put(bank.normals, normals),
+        conf=put(bank.conf, conf), colors=put(bank.colors, colors),
+        point_valid=put(bank.point_valid, point_valid), cloud_desc=put(bank.cloud_desc, entry.cloud_desc),
         kf_desc=put(bank.kf_desc, entry.kf_desc), kf_codes=put(bank.kf_codes, codes),
         kf_valid=put(bank.kf_valid, entry.kf_valid), map_valid=put(bank.map_valid, jnp.bool_(True)),
         visits=put(bank.visits, jnp.int32(1)), voxel_size=put(bank.voxel_size, entry.voxel_size),
+        kp_points=put(bank.kp_points, kp.points), kp_desc=put(bank.kp_desc, kp.desc),
+        kp_valid=put(bank.kp_valid, kp.valid),
     )
     return new, jnp.where(ok, slot, -1).astype(jnp.int32)
 
@@ -206,7 +310,10 @@ def recall(bank: MemoryBank, query_desc, query_valid, query_cloud_desc, cfg: Mem
     frac = votes / jnp.maximum(jnp.sum(query_valid), 1)
     sim3d = bank.cloud_desc @ query_cloud_desc
     scores = jnp.where((votes > 0) & bank.map_valid, frac + cfg.w_cloud * sim3d, -jnp.inf)
-    top_scores, top = jax.lax.top_k(scores, cfg.top_k)
+    top_scores, top = jax.lax.top_k(scores, min(cfg.top_k, M))
+    if cfg.top_k > M:  # fewer maps than candidates: pad with "none"
+        top_scores = jnp.concatenate([top_scores, jnp.full((cfg.top_k - M,), -jnp.inf, top_scores.dtype)])
+        top = jnp.concatenate([top, jnp.zeros((cfg.top_k - M,), top.dtype)])
     return Recall(votes=votes, scores=scores, candidates=jnp.where(jnp.isfinite(top_scores), top, -1),
                   candidate_scores=top_scores)
 
@@ -299,49 +406,328 @@ def _entry_from_points(points, colors, conf, valid, kf_desc, kf_valid, voxel_siz
                     cloud_desc=descriptors.cloud_descriptor(vox.points, vox.valid), voxel_size=vs)
 
 
-def build_entry(cloud: SequenceCloud, kf_desc, kf_valid, cfg: MemoryConfig) -> MapEntry:
+def build_entry(cloud: SequenceCloud, kf_desc, kf_valid, cfg: MemoryConfig,
+                keypoints: Keypoints | None = None) -> MapEntry:
     """A new map from a sequence: adaptive voxel size from the scene extent, mean point, colour and
-    confidence per voxel, PCA normals, the 3D descriptor and the keyframe descriptors."""
+    confidence per voxel, PCA normals, the 3D descriptor, the keyframe descriptors and (optional)
+    the sequence's 3D keypoints (:func:`lift_keypoints`, same frame as ``cloud``)."""
     from cm3d.ops.voxel import adaptive_voxel_size
 
     vs = adaptive_voxel_size(cloud.points, cloud.valid, cfg.voxel_resolution)
-    return _entry_from_points(cloud.points, cloud.colors, cloud.conf, cloud.valid, kf_desc, kf_valid, vs, cfg)
+    entry = _entry_from_points(cloud.points, cloud.colors, cloud.conf, cloud.valid, kf_desc, kf_valid, vs, cfg)
+    if keypoints is not None:
+        ok = keypoints.valid & jnp.all(jnp.isfinite(keypoints.points), -1) & jnp.all(jnp.isfinite(keypoints.desc), -1)
+        keypoints = Keypoints(jnp.where(ok[:, None], keypoints.points, 0.0).astype(jnp.float32),
+                              jnp.where(ok[:, None], keypoints.desc, 0.0).astype(jnp.float32), ok)
+    return entry.replace(keypoints=keypoints)
 
 
 @struct.dataclass
 class Verification:
-    """ICP verification of one candidate: accepted, transform (4, 4) query -> map (Sim(3)),
-    scale, fitness, inlier_count, inlier_rmse (map units)."""
+    """Geometric verification of one candidate map: accepted; transform (4, 4) query -> map
+    (Sim(3) ``[s R, t]``) and its scale; keypoint ``matches`` and RANSAC ``keypoint_inliers``;
+    ICP ``fitness`` (share of the query's ICP points with a map point within ``icp_distance``),
+    ``inlier_count``, ``inlier_rmse`` (map units) and ``colour_agreement`` (share of ICP inliers
+    whose stored colour agrees with the query's)."""
 
     accepted: jax.Array
     transform: jax.Array
     scale: jax.Array
+    matches: jax.Array
+    keypoint_inliers: jax.Array
     fitness: jax.Array
     inlier_count: jax.Array
     inlier_rmse: jax.Array
+    colour_agreement: jax.Array
 
 
-def registration_options(cfg: MemoryConfig):
-    from cm3d.solvers.align import GlobalOptions
+def match_keypoints(q: Keypoints, m: Keypoints, ratio: float, min_separation):
+    """Mutual nearest neighbours in descriptor space with a 3D-aware ratio test.
 
-    return dataclasses.replace(GlobalOptions.sim3(), scales=tuple(cfg.scales))
+    The second-best match is searched among map keypoints farther than ``min_separation`` (map
+    units) from the best one, so repeated views of one 3D point do not fail the ratio test.
+    Returns (j (Nq,) map index per query keypoint, ok (Nq,) bool).
+    """
+    q = jax.tree.map(jnp.asarray, q)
+    m = jax.tree.map(jnp.asarray, m)
+    d2 = 2.0 - 2.0 * (q.desc @ m.desc.T)  # unit descriptors: squared L2
+    pair = q.valid[:, None] & m.valid[None, :]
+    d2 = jnp.where(pair, d2, jnp.inf)
+    j = jnp.argmin(d2, axis=1)
+    best = jnp.min(d2, axis=1)
+    far = jnp.sum((m.points[None, :, :] - m.points[j][:, None, :]) ** 2, -1) > min_separation**2
+    second = jnp.min(jnp.where(far, d2, jnp.inf), axis=1)
+    mutual = jnp.argmin(d2, axis=0)[j] == jnp.arange(d2.shape[0])
+    ok = q.valid & jnp.isfinite(best) & mutual & (best <= ratio**2 * second)
+    return j, ok
+
+
+def _similarity(s, R, t):
+    from cm3d.solvers.align import similarity_matrix
+
+    return similarity_matrix(s, R, t)
+
+
+def _triangle_frame(p):
+    """Orthonormal frame (3, 3) (columns), centroid and size (sum of edge lengths) of p (3, 3)."""
+    e1 = p[1] - p[0]
+    e3 = jnp.cross(e1, p[2] - p[0])
+    e1 = e1 / jnp.maximum(jnp.linalg.norm(e1), 1e-12)
+    e3 = e3 / jnp.maximum(jnp.linalg.norm(e3), 1e-12)
+    F = jnp.stack([e1, jnp.cross(e3, e1), e3], axis=1)
+    edges = jnp.linalg.norm(p - jnp.roll(p, 1, axis=0), axis=-1)
+    return F, jnp.mean(p, 0), edges
+
+
+def triangle_sim3(src, dst):
+    """Closed-form similarity mapping triangle ``src`` (3, 3) onto ``dst`` (no SVD: a RANSAC
+    hypothesis): rotation between the triangles' frames, scale from their perimeters.
+    Returns (s, R, t, consistent) where consistent: every edge ratio within 15% of s and the
+    triangle not degenerate."""
+    Fs, cs, es = _triangle_frame(src)
+    Fd, cd, ed = _triangle_frame(dst)
+    s = jnp.sum(ed) / jnp.maximum(jnp.sum(es), 1e-12)
+    R = Fd @ Fs.T
+    t = cd - s * (R @ cs)
+    ratio = ed / jnp.maximum(es, 1e-12)
+    area = jnp.linalg.norm(jnp.cross(src[1] - src[0], src[2] - src[0]))
+    ok = jnp.all(jnp.abs(ratio / jnp.maximum(s, 1e-12) - 1.0) < 0.15) & (area > 1e-3 * jnp.sum(es) ** 2)
+    return s, R, t, ok
+
+
+def ransac_sim3(src, dst, ok, key, threshold, num_hypotheses: int, scale_range):
+    """Sim(3) RANSAC on correspondences ``src[i] -> dst[i]`` (N, 3) where ``ok``: a fixed number of
+    random 3-point hypotheses (:func:`triangle_sim3`; inconsistent edge ratios or a scale outside
+    ``scale_range`` score 0) scored by inliers within ``threshold``; the best refitted by Umeyama
+    on its inliers (twice). Returns (transform (4, 4), scale, inliers (N,) bool)."""
+    from cm3d.solvers.align import umeyama
+
+    src, dst, ok = jnp.asarray(src, jnp.float32), jnp.asarray(dst, jnp.float32), jnp.asarray(ok, bool)
+    n_ok = jnp.sum(ok)
+    order = jnp.argsort(~ok, stable=True)  # the usable correspondences first
+    idx = order[jax.random.randint(key, (num_hypotheses, 3), 0, jnp.maximum(n_ok, 1))]
+    s, R, t, good = jax.vmap(lambda i: triangle_sim3(src[i], dst[i]))(idx)
+    pred = s[:, None, None] * jnp.einsum("hij,nj->hni", R, src) + t[:, None, :]
+    inl = ok[None] & (jnp.sum((pred - dst[None]) ** 2, -1) < threshold**2)
+    plausible = good & (s >= scale_range[0]) & (s <= scale_range[1]) & jnp.all(jnp.isfinite(pred), (1, 2))
+    score = jnp.where(plausible, jnp.sum(inl, 1), 0)
+    h = jnp.argmax(score)
+    best = inl[h]
+    T = _similarity(s[h], R[h], t[h])
+    for _ in range(2):
+        s2, R2, t2 = umeyama(src, dst, best, with_scale=True)
+        T2 = _similarity(s2, R2, t2)
+        inl2 = ok & (jnp.sum((src @ T2[:3, :3].T + T2[:3, 3] - dst) ** 2, -1) < threshold**2)
+        better = ((jnp.sum(inl2) >= jnp.sum(best)) & (s2 >= scale_range[0]) & (s2 <= scale_range[1])
+                  & jnp.all(jnp.isfinite(T2)))
+        T = jnp.where(better, T2, T)
+        best = jnp.where(better, inl2, best)
+    scale = jnp.cbrt(jnp.linalg.det(T[:3, :3]))
+    return T, scale, best & (score[h] > 0)
+
+
+def _even_subsample(points, valid, n: int):
+    """``n`` of the valid points, evenly spread over them (the first n when fewer): (n, 3), (n,)."""
+    order = jnp.argsort(~valid, stable=True)
+    count = jnp.sum(valid)
+    i = jnp.arange(n)
+    pos = jnp.where(count > n, (i * count) // n, i)
+    idx = order[jnp.minimum(pos, valid.shape[0] - 1)]
+    return points[idx], i < count, idx
+
+
+_CELL_BITS = 10  # cell coordinates in [0, 1024) per axis after the offset below
+_NO_CELL = jnp.iinfo(jnp.int32).max
+
+
+def cell_codes(points, valid, cell):
+    """Integer code (N,) int32 of each point's grid cell ``floor(p / cell)`` (offset so that the
+    grid spans +-512 cells around the origin; farther points are clipped); invalid: INT32_MAX."""
+    c = jnp.clip(jnp.floor(points / cell).astype(jnp.int32) + (1 << (_CELL_BITS - 1)), 0, (1 << _CELL_BITS) - 1)
+    code = c[..., 0] + (c[..., 1] << _CELL_BITS) + (c[..., 2] << (2 * _CELL_BITS))
+    return jnp.where(valid, code, _NO_CELL)
+
+
+def sort_by_cell(points, valid, cell, *others):
+    """Reorder a map's points (and any per-point arrays) by :func:`cell_codes` (invalid last): the
+    bank's layout, which lets :func:`grid_nearest` find neighbours by binary search."""
+    order = jnp.argsort(cell_codes(points, valid, cell), stable=True)
+    return (points[order], valid[order]) + tuple(o[order] for o in others)
+
+
+def grid_nearest(q, points, valid, cell, reach: int = 1, per_cell: int = 2):
+    """Nearest map point to each query q (n, 3) among the points of the cells within ``reach``
+    cells (``points`` sorted by :func:`sort_by_cell`); exact for neighbours closer than
+    ``reach * cell`` when no cell holds more than ``per_cell`` points (a map voxel-downsampled
+    finer than ``cell`` holds about one or two). Codes run along x first, so the 2 reach + 1 cells
+    of each (y, z) row are one contiguous range: one binary search per row.
+    Returns (index (n,), squared distance (n,), inf if none)."""
+    q, points, valid = jnp.asarray(q), jnp.asarray(points), jnp.asarray(valid, bool)
+    codes = cell_codes(points, valid, cell)
+    r = jnp.arange(-reach, reach + 1)
+    dy, dz = (a.reshape(-1) for a in jnp.meshgrid(r, r, indexing="ij"))
+    base = jnp.floor(q / cell).astype(jnp.int32) + (1 << (_CELL_BITS - 1))
+    hi_c = (1 << _CELL_BITS) - 1
+    x0 = jnp.clip(base[:, 0] - reach, 0, hi_c)[:, None]
+    x1 = jnp.clip(base[:, 0] + reach, 0, hi_c)[:, None]
+    y = base[:, 1:2] + dy[None]
+    z = base[:, 2:3] + dz[None]
+    inside = (y >= 0) & (y <= hi_c) & (z >= 0) & (z <= hi_c) & (base[:, 0:1] + reach >= 0) & (base[:, 0:1] - reach <= hi_c)
+    row = (y << _CELL_BITS) + (z << (2 * _CELL_BITS))
+    lo, hi = x0 + row, x1 + row  # (n, R) code range of each row
+    start = jnp.searchsorted(codes, lo.reshape(-1), side="left").reshape(lo.shape)
+    width = (2 * reach + 1) * per_cell
+    idx = jnp.minimum(start[..., None] + jnp.arange(width), points.shape[0] - 1)  # (n, R, width)
+    c = codes[idx]
+    hit = inside[..., None] & (c >= lo[..., None]) & (c <= hi[..., None])
+    d2 = jnp.where(hit, jnp.sum((points[idx] - q[:, None, None, :]) ** 2, -1), jnp.inf).reshape(q.shape[0], -1)
+    k = jnp.argmin(d2, 1)
+    n = jnp.arange(q.shape[0])
+    return idx.reshape(q.shape[0], -1)[n, k], d2[n, k]
+
+
+def icp_sim3(src, src_valid, dst, dst_valid, init, distance, iterations: int, cell=None, reach: int = 1,
+             per_cell: int = 2):
+    """Trimmed point-to-point Sim(3) ICP of ``src`` (n, 3) to ``dst`` (P, 3) with nearest neighbours
+    within ``distance``: brute force when ``cell`` is None, else :func:`grid_nearest` (``dst`` sorted
+    by :func:`sort_by_cell` at ``cell``). Returns (transform, inlier_count, fitness, rmse,
+    nearest index (n,), inlier mask (n,)) at the final transform."""
+    from cm3d.solvers.align import umeyama
+
+    src, dst = jnp.asarray(src, jnp.float32), jnp.asarray(dst, jnp.float32)
+    src_valid, dst_valid = jnp.asarray(src_valid, bool), jnp.asarray(dst_valid, bool)
+    dn = jnp.sum(dst**2, -1)
+
+    def nearest(T):
+        q = src @ T[:3, :3].T + T[:3, 3]
+        if cell is None:
+            d2 = jnp.maximum(jnp.sum(q**2, -1)[:, None] + dn[None] - 2.0 * q @ dst.T, 0.0)
+            d2 = jnp.where(dst_valid[None], d2, jnp.inf)
+            j = jnp.argmin(d2, 1)
+            dmin = jnp.take_along_axis(d2, j[:, None], 1)[:, 0]
+        else:
+            j, dmin = grid_nearest(q, dst, dst_valid, cell, reach, per_cell)
+        return j, dmin, src_valid & (dmin < distance**2)
+
+    def step(T, _):
+        j, _, inl = nearest(T)
+        s, R, t = umeyama(src, dst[j], inl, with_scale=True)
+        T2 = _similarity(s, R, t)
+        ok = (jnp.sum(inl) >= 3) & jnp.all(jnp.isfinite(T2))
+        return jnp.where(ok, T2, T), None
+
+    T, _ = jax.lax.scan(step, init, None, length=iterations)
+    j, dmin, inl = nearest(T)
+    count = jnp.sum(inl)
+    fitness = count / jnp.maximum(jnp.sum(src_valid), 1)
+    rmse = jnp.sqrt(jnp.sum(jnp.where(inl, dmin, 0.0)) / jnp.maximum(count, 1))
+    return T, count, fitness, rmse, j, inl
+
+
+def _keypoint_stage(bank: MemoryBank, m, query: Keypoints, cfg: MemoryConfig, key):
+    """Match the query's keypoints with map ``m``'s and fit Sim(3) by RANSAC: (T, scale, matches, inliers)."""
+    vs = jnp.maximum(bank.voxel_size[m], 1e-12)
+    mk = Keypoints(bank.kp_points[m], bank.kp_desc[m], bank.kp_valid[m])
+    j, ok = match_keypoints(query, mk, cfg.ratio, cfg.ransac_distance * vs)
+    T, scale, inl = ransac_sim3(query.points, mk.points[j], ok, key, cfg.ransac_distance * vs,
+                                cfg.ransac_hypotheses, cfg.scale_range)
+    return T, scale, jnp.sum(ok).astype(jnp.int32), jnp.sum(inl).astype(jnp.int32)
+
+
+def _icp_stage(bank: MemoryBank, m, entry: MapEntry, init, cfg: MemoryConfig):
+    """Sim(3) ICP of an even subsample of the query's voxels against map ``m`` from ``init``:
+    (T, inlier count, fitness, rmse, colour agreement: share of inliers whose colour is within
+    ``cfg.max_colour_difference`` of their map point's)."""
+    src, sv, idx = _even_subsample(entry.points, entry.point_valid, cfg.icp_points)
+    vs = jnp.maximum(bank.voxel_size[m], 1e-12)
+    cell = GRID_CELL * vs
+    T, count, fitness, rmse, j, inl = icp_sim3(src, sv, bank.points[m], bank.point_valid[m], init, cell,
+                                               cfg.icp_iterations, cell=cell, per_cell=cfg.grid_per_cell)
+    dc = jnp.linalg.norm(entry.colors[idx].astype(jnp.float32) - bank.colors[m][j].astype(jnp.float32), axis=-1)
+    agree = jnp.sum(inl & (dc <= cfg.max_colour_difference)) / jnp.maximum(count, 1)
+    return T, count, fitness, rmse, agree
+
+
+def _decide(bank, m, T, scale, matches, kp_inliers, icp, cfg: MemoryConfig) -> Verification:
+    """Acceptance per ``cfg.verification`` (see :func:`verify`)."""
+    vs = jnp.maximum(bank.voxel_size[m], 1e-12)
+    present = (m >= 0) & bank.map_valid[jnp.maximum(m, 0)]
+    if cfg.verification == "none":
+        eye = jnp.eye(4, dtype=jnp.float32)
+        z = jnp.zeros((), jnp.float32)
+        return Verification(accepted=present, transform=eye, scale=jnp.ones((), jnp.float32), matches=matches,
+                            keypoint_inliers=kp_inliers, fitness=z, inlier_count=jnp.zeros((), jnp.int32), inlier_rmse=z,
+                            colour_agreement=z)
+    ok = present & (kp_inliers >= cfg.min_keypoint_inliers) & jnp.all(jnp.isfinite(T))
+    if icp is None:
+        z = jnp.zeros((), jnp.float32)
+        return Verification(accepted=ok, transform=T, scale=scale, matches=matches, keypoint_inliers=kp_inliers,
+                            fitness=z, inlier_count=jnp.zeros((), jnp.int32), inlier_rmse=z, colour_agreement=z)
+    T2, count, fitness, rmse, agree = icp
+    scale2 = jnp.cbrt(jnp.linalg.det(T2[:3, :3]))
+    ok = (ok & (count >= cfg.min_inliers) & (fitness >= cfg.min_fitness) & (rmse <= cfg.max_rmse * vs)
+          & (agree >= cfg.min_colour_agreement) & (jnp.abs(jnp.log(scale2 / jnp.maximum(scale, 1e-12))) < 0.2)
+          & (scale2 >= cfg.scale_range[0]) & (scale2 <= cfg.scale_range[1]) & jnp.all(jnp.isfinite(T2)))
+    return Verification(accepted=ok, transform=T2, scale=scale2, matches=matches, keypoint_inliers=kp_inliers,
+                        fitness=fitness, inlier_count=count.astype(jnp.int32), inlier_rmse=rmse, colour_agreement=agree)
+
+
+def _query_keypoints(entry: MapEntry, cfg: MemoryConfig) -> Keypoints:
+    if entry.keypoints is None:
+        return _fit_keypoints(None, 3, cfg.keypoint_dim)
+    return entry.keypoints
 
 
 def verify(bank: MemoryBank, map_id, entry: MapEntry, cfg: MemoryConfig, key) -> Verification:
-    """Register the query's map-entry cloud (its voxels) to map ``map_id`` from any pose and scale
-    (FPFH + RANSAC + Sim(3) ICP) and accept on absolute inlier count, fitness and inlier RMSE."""
-    from cm3d.solvers.align import global_registration
+    """Verify that the query ``entry`` (its own frame and scale) shows map ``map_id``.
 
+    1. keypoint matches (:func:`match_keypoints`) and Sim(3) RANSAC (:func:`ransac_sim3`): at least
+       ``cfg.min_keypoint_inliers`` inliers within ``cfg.ransac_distance`` map voxels;
+    2. (``cfg.verification == "full"``) Sim(3) ICP of ``cfg.icp_points`` query voxels against the
+       map's from the RANSAC pose (:func:`icp_sim3`), accepted on absolute inlier count
+       (``cfg.min_inliers``), fitness (``cfg.min_fitness``) and inlier RMSE (``cfg.max_rmse`` voxels).
+    Geometry is what rejects look-alike scenes. ``cfg.verification == "none"`` accepts any stored map.
+    """
     m = jnp.maximum(map_id, 0)
-    g = global_registration(entry.points, bank.points[m], entry.point_valid, bank.point_valid[m], key,
-                            registration_options(cfg))
-    n_src = jnp.sum(entry.point_valid)
-    inliers = jnp.round(g.fitness * n_src).astype(jnp.int32)
-    vs = jnp.maximum(bank.voxel_size[m], 1e-12)
-    ok = ((map_id >= 0) & bank.map_valid[m] & (inliers >= cfg.min_inliers) & (g.fitness >= cfg.min_fitness)
-          & (g.inlier_rmse <= cfg.max_rmse * vs) & jnp.all(jnp.isfinite(g.transform)))
-    return Verification(accepted=ok, transform=g.transform, scale=g.scale, fitness=g.fitness,
-                        inlier_count=inliers, inlier_rmse=g.inlier_rmse)
+    T, scale, matches, inliers = _keypoint_stage(bank, m, _query_keypoints(entry, cfg), cfg, key)
+    icp = _icp_stage(bank, m, entry, T, cfg) if cfg.verification == "full" else None
+    return _decide(bank, jnp.where(map_id >= 0, m, -1), T, scale, matches, inliers, icp, cfg)
+
+
+@struct.dataclass
+class Identification:
+    """Recall + verification of one query: the recall, keypoint checks of each candidate
+    (``candidate_inliers`` (top_k,)), the final verification of the best candidate, and
+    ``map_id`` (the accepted map, -1 if none)."""
+
+    recall: Recall
+    candidate_inliers: jax.Array
+    verification: Verification
+    map_id: jax.Array
+
+
+def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Identification:
+    """Which stored map does the query ``entry`` show, and where? (pure, jittable, vmappable)
+
+    2D recall (:func:`recall`) proposes ``cfg.top_k`` candidates; each is checked by keypoint
+    matching + Sim(3) RANSAC; the candidate with most RANSAC inliers (ties: recall order) is
+    refined and verified by ICP (:func:`verify`, per ``cfg.verification``).
+    """
+    r = recall(bank, entry.kf_desc, entry.kf_valid, entry.cloud_desc, cfg)
+    cand = r.candidates
+    if cfg.verification == "none":
+        v = _decide(bank, cand[0], jnp.eye(4), jnp.ones(()), jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), None, cfg)
+        return Identification(recall=r, candidate_inliers=jnp.zeros(cfg.top_k, jnp.int32), verification=v,
+                              map_id=jnp.where(v.accepted, cand[0], -1))
+    qk = _query_keypoints(entry, cfg)
+    keys = jax.random.split(key, cfg.top_k)
+    Ts, scales, matches, inliers = jax.vmap(lambda m, k: _keypoint_stage(bank, jnp.maximum(m, 0), qk, cfg, k))(cand, keys)
+    inliers = jnp.where(cand >= 0, inliers, -1)
+    b = jnp.argmax(inliers)
+    m = cand[b]
+    icp = _icp_stage(bank, jnp.maximum(m, 0), entry, Ts[b], cfg) if cfg.verification == "full" else None
+    v = _decide(bank, m, Ts[b], scales[b], matches[b], inliers[b], icp, cfg)
+    return Identification(recall=r, candidate_inliers=inliers, verification=v, map_id=jnp.where(v.accepted, m, -1))
 
 
 def relocalize(transform, cam_to_world):
@@ -367,10 +753,26 @@ def _merge_keyframes(old_desc, old_valid, new_desc, new_valid):
     return desc[idx], jnp.arange(K) < jnp.minimum(n, K)
 
 
+def _merge_keypoints(old: Keypoints, new: Keypoints) -> Keypoints:
+    """Up to N keypoints from the map's and the (already moved) query's: all when they fit, else an
+    evenly spread subset of the concatenation, as for keyframes."""
+    N = old.valid.shape[0]
+    pts = jnp.concatenate([old.points, new.points])
+    desc = jnp.concatenate([old.desc, new.desc])
+    valid = jnp.concatenate([old.valid, new.valid])
+    order = jnp.argsort(~valid, stable=True)
+    n = jnp.sum(valid)
+    pos = jnp.round(jnp.linspace(0.0, 1.0, N) * jnp.maximum(n - 1, 0)).astype(jnp.int32)
+    idx = jnp.where(n > N, order[pos], order[:N])
+    kv = jnp.arange(N) < jnp.minimum(n, N)
+    return Keypoints(jnp.where(kv[:, None], pts[idx], 0.0), jnp.where(kv[:, None], desc[idx], 0.0), kv)
+
+
 def update_map(bank: MemoryBank, map_id, entry: MapEntry, transform, cfg: MemoryConfig) -> MemoryBank:
     """Merge a verified query into map ``map_id``: its voxels moved by ``transform`` (query ->
     map), pooled with the map's (weighted by confidence), downsampled again at the map's voxel
-    size (grown if over capacity); keyframes merged; 3D descriptor and normals recomputed."""
+    size (grown if over capacity); keyframes and keypoints merged; 3D descriptor and normals
+    recomputed."""
     from cm3d.ops.neighbors import estimate_normals
 
     m = map_id
@@ -383,25 +785,33 @@ def update_map(bank: MemoryBank, map_id, entry: MapEntry, transform, cfg: Memory
     P = bank.points.shape[1]
     vox, vs = _downsample_to_capacity(pts, valid, feats, bank.voxel_size[m], P)
     normals = estimate_normals(vox.points, vox.valid, k=16, radius=cfg.normal_radius)
+    normals = jnp.where(vox.valid[:, None], normals, 0.0)
+    vpts, vvalid, normals, vfeat = sort_by_cell(vox.points, vox.valid, jnp.maximum(vs, 1e-12) * GRID_CELL, normals,
+                                                vox.features)
+    vox = vox.replace(points=vpts, valid=vvalid, features=vfeat)
     kf, kfv = _merge_keyframes(bank.kf_desc[m], bank.kf_valid[m], entry.kf_desc, entry.kf_valid)
+    qk = _fit_keypoints(entry.keypoints, bank.kp_valid.shape[1], bank.kp_desc.shape[2])
+    qk = qk.replace(points=jnp.where(qk.valid[:, None], qk.points @ A.T + t, 0.0))
+    kp = _merge_keypoints(Keypoints(bank.kp_points[m], bank.kp_desc[m], bank.kp_valid[m]), qk)
     return bank.replace(
-        points=bank.points.at[m].set(vox.points), normals=bank.normals.at[m].set(jnp.where(vox.valid[:, None], normals, 0.0)),
+        points=bank.points.at[m].set(vox.points), normals=bank.normals.at[m].set(normals),
         conf=bank.conf.at[m].set(vox.features[:, 3]),
         colors=bank.colors.at[m].set(jnp.clip(jnp.round(vox.features[:, :3]), 0, 255).astype(jnp.uint8)),
         point_valid=bank.point_valid.at[m].set(vox.valid),
         cloud_desc=bank.cloud_desc.at[m].set(descriptors.cloud_descriptor(vox.points, vox.valid)),
         kf_desc=bank.kf_desc.at[m].set(kf), kf_codes=bank.kf_codes.at[m].set(descriptors.hash_codes(kf, bank.planes)),
-        kf_valid=bank.kf_valid.at[m].set(kfv), visits=bank.visits.at[m].add(1), voxel_size=bank.voxel_size.at[m].set(vs))
+        kf_valid=bank.kf_valid.at[m].set(kfv), visits=bank.visits.at[m].add(1), voxel_size=bank.voxel_size.at[m].set(vs),
+        kp_points=bank.kp_points.at[m].set(kp.points), kp_desc=bank.kp_desc.at[m].set(kp.desc),
+        kp_valid=bank.kp_valid.at[m].set(kp.valid))
 
 
 @struct.dataclass
 class Report:
-    """What :func:`remember` decided: the recall, each candidate's verification (top_k,), the
-    accepted map (-1 if none), the map written to (-1 if the bank was full), the transform
-    query -> map (identity for a new map) and whether a new map was created."""
+    """What :func:`remember` decided: the identification (recall and verification), the accepted
+    map (-1 if none), the map written to (-1 if the bank was full), the transform query -> map
+    (identity for a new map) and whether a new map was created."""
 
-    recall: Recall
-    checks: Verification
+    identification: Identification
     recalled: jax.Array
     map_id: jax.Array
     transform: jax.Array
@@ -411,27 +821,23 @@ class Report:
 def remember(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> tuple[MemoryBank, Report]:
     """Recall, verify, then update the recalled map or store a new one (pure, jittable).
 
-    ``entry`` is the query sequence built by :func:`build_entry` (its own frame and scale). The
-    top-k recalled candidates are verified; the best accepted one (highest fitness) is updated
-    with the query moved into its frame, else the query becomes a new map (map_id -1 when full).
+    ``entry`` is the query sequence built by :func:`build_entry` (its own frame and scale).
+    :func:`identify` picks and verifies a candidate; an accepted one is updated with the query
+    moved into its frame (:func:`update_map`), else the query becomes a new map (map_id -1 when full).
     """
-    r = recall(bank, entry.kf_desc, entry.kf_valid, entry.cloud_desc, cfg)
-    keys = jax.random.split(key, cfg.top_k)
-    checks = jax.vmap(lambda m, k: verify(bank, m, entry, cfg, k))(r.candidates, keys)
-    score = jnp.where(checks.accepted, checks.fitness, -jnp.inf)
-    best = jnp.argmax(score)
-    hit = checks.accepted[best]
-    recalled = jnp.where(hit, r.candidates[best], -1)
-    T = jnp.where(hit, checks.transform[best], jnp.eye(4, dtype=checks.transform.dtype))
+    ident = identify(bank, entry, cfg, key)
+    hit = ident.map_id >= 0
+    recalled = ident.map_id
+    T = jnp.where(hit, ident.verification.transform, jnp.eye(4, dtype=ident.verification.transform.dtype))
 
     def on_hit(b):
-        return update_map(b, recalled, entry, T, cfg), recalled
+        return update_map(b, jnp.maximum(recalled, 0), entry, T, cfg), recalled
 
     def on_miss(b):
         return insert_map(b, entry)
 
     bank, map_id = jax.lax.cond(hit, on_hit, on_miss, bank)
-    return bank, Report(recall=r, checks=checks, recalled=recalled, map_id=map_id, transform=T,
+    return bank, Report(identification=ident, recalled=recalled, map_id=map_id.astype(jnp.int32), transform=T,
                         created=~hit & (map_id >= 0))
 
 
@@ -446,7 +852,7 @@ def _fields(bank: MemoryBank) -> dict[str, np.ndarray]:
 def save(bank: MemoryBank, path, cfg: MemoryConfig) -> None:
     """Write the bank atomically with a versioned header and a SHA-256 checksum."""
     arrays = _fields(bank)
-    for name in ("points", "normals", "conf", "cloud_desc", "kf_desc"):
+    for name in ("points", "normals", "conf", "cloud_desc", "kf_desc", "kp_points", "kp_desc"):
         bad = ~np.isfinite(arrays[name])
         if bad.any():
             raise ValueError(f"memory bank field {name!r} holds {int(bad.sum())} non-finite values; "

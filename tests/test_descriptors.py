@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
@@ -81,3 +82,26 @@ def test_hash_codes_and_hamming_match_numpy():
     np.testing.assert_array_equal(codes, ref)
     ham = np.asarray(D.hamming(codes[:, None], codes[None]))
     np.testing.assert_array_equal(ham, (bits[:, None] != bits[None]).sum(-1))
+
+
+def test_detect_features_rootsift_mask_and_padding():
+    from cm3d.data import synthetic
+    from cm3d.ops import keypoints
+
+    seq = synthetic.generate(3, 0, 2, "none", synthetic.WorldConfig(height=120, width=160, supersample=1))
+    mask = np.zeros((120, 160), bool)
+    mask[:, :80] = True
+    f = keypoints.detect_features(seq.images[0], mask, capacity=400, contrast_threshold=0.01)
+    n = int(f.valid.sum())
+    assert 20 < n < 400 and f.desc.shape == (400, keypoints.DESCRIPTOR_DIM["sift"])
+    assert np.all(f.valid[:n]) and not np.any(f.valid[n:]) and not np.any(f.desc[n:])
+    np.testing.assert_allclose(np.linalg.norm(f.desc[:n], axis=1), 1.0, atol=1e-5)
+    assert np.all(f.desc[:n] >= 0) and np.all(f.uv[:n, 0] < 80 + 2)  # RootSIFT; only inside the mask
+    few = keypoints.detect_features(seq.images[0], mask, capacity=5, contrast_threshold=0.01)
+    np.testing.assert_array_equal(few.uv, f.uv[:5])  # strongest first
+    s = keypoints.detect_sequence(seq.images, None, 16)
+    assert s.uv.shape == (2, 16, 2) and s.valid.shape == (2, 16)
+    empty = keypoints.detect_features(np.zeros((40, 40, 3), np.uint8), capacity=8)
+    assert not np.any(empty.valid)
+    with pytest.raises(ValueError, match="mask"):
+        keypoints.detect_features(seq.images[0], np.ones((10, 10), bool))

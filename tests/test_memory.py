@@ -254,3 +254,167 @@ def test_update_map_merges_into_the_map_frame():
     assert np.median(d) < 0.5 * float(bank.voxel_size[m])  # merged voxels lie on the old map
     assert int(merged.point_valid[m].sum()) <= SEQ_CFG.max_points
     assert int(merged.kf_valid[m].sum()) == min(SEQ_CFG.max_keyframes, 2 * int(entry.kf_valid.sum()))
+
+
+# ----------------------------------------------------------------------------------------------
+# 3D keypoints, Sim(3) RANSAC, grid neighbours, verification on real synthetic visits
+
+
+def test_lift_keypoints_agrees_with_unprojection_and_round_robin():
+    from cm3d.ops import camera, se3
+
+    S, H, W, N = 3, 20, 30, 4
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(1, 3, (S, H, W)).astype(np.float32)
+    depth[1, 5, 7] = 0.0  # no depth: dropped
+    K = np.tile(np.array([[20.0, 0, 14.5], [0, 20.0, 9.5], [0, 0, 1]], np.float32), (S, 1, 1))
+    c2w = np.asarray(se3.exp(jnp.asarray(rng.normal(size=(S, 6)) * 0.3, jnp.float32)))
+    uv = rng.integers(0, [W, H], (S, N, 2)).astype(np.float32)
+    uv[1, 0] = [7, 5]
+    desc = rng.normal(size=(S, N, 8)).astype(np.float32)
+    valid = np.ones((S, N), bool)
+    valid[2, 3] = False
+    kp = jax.jit(memory.lift_keypoints, static_argnums=6)(uv, desc, valid, depth, K, c2w, 16)
+    full = np.asarray(camera.unproject(depth, K, c2w))
+    ok = valid & (depth[np.arange(S)[:, None], uv[..., 1].astype(int), uv[..., 0].astype(int)] > 0)
+    assert int(kp.valid.sum()) == ok.sum() == 10
+    # round robin: the first keypoints come one per frame, each frame's strongest first
+    np.testing.assert_allclose(np.asarray(kp.desc[:3]), desc[[0, 1, 2], [0, 1, 0]])
+    for p, d in zip(np.asarray(kp.points)[np.asarray(kp.valid)], np.asarray(kp.desc)[np.asarray(kp.valid)]):
+        s, n = np.argwhere(np.all(desc == d, -1))[0]
+        np.testing.assert_allclose(p, full[s, int(uv[s, n, 1]), int(uv[s, n, 0])], atol=1e-4)
+    assert not np.any(np.asarray(kp.points)[~np.asarray(kp.valid)])  # padding is zero
+
+
+def test_ransac_sim3_recovers_a_similarity_among_outliers():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(1)
+    src = rng.uniform(-1, 1, (200, 3)).astype(np.float32)
+    R = Rotation.from_rotvec([0.4, -1.0, 2.0]).as_matrix()
+    s, t = 1.7, np.array([0.5, -2.0, 1.0])
+    dst = (s * src @ R.T + t).astype(np.float32) + rng.normal(scale=0.005, size=(200, 3)).astype(np.float32)
+    outlier = rng.random(200) < 0.6
+    dst[outlier] = rng.uniform(-3, 3, (outlier.sum(), 3))
+    ok = np.ones(200, bool)
+    ok[-20:] = False
+    T, scale, inl = jax.jit(memory.ransac_sim3, static_argnums=(5, 6))(
+        src, dst, ok, jax.random.PRNGKey(0), 0.05, 256, (0.25, 4.0))
+    np.testing.assert_allclose(float(scale), s, rtol=1e-2)
+    np.testing.assert_allclose(np.asarray(T[:3, :3]), s * R, atol=2e-2)
+    inl = np.asarray(inl)
+    assert not np.any(inl & ~ok) and np.mean(inl[ok & ~outlier]) > 0.95 and not np.any(inl & outlier & ok & False)
+    # no usable correspondences: nothing is an inlier, nothing is NaN
+    T, scale, inl = memory.ransac_sim3(src, dst, np.zeros(200, bool), jax.random.PRNGKey(0), 0.05, 64, (0.25, 4.0))
+    assert not np.any(np.asarray(inl)) and np.all(np.isfinite(np.asarray(T)))
+
+
+def test_grid_nearest_is_exact_within_a_cell():
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(0)
+    p = rng.uniform(-2, 2, (3000, 3)).astype(np.float32)
+    v = rng.random(3000) < 0.9
+    cell = 0.3
+    ps, vs = memory.sort_by_cell(jnp.asarray(p), jnp.asarray(v), cell)
+    q = rng.uniform(-2.2, 2.2, (500, 3)).astype(np.float32)
+    i, d2 = jax.jit(memory.grid_nearest, static_argnums=(4, 5))(jnp.asarray(q), ps, vs, cell, 1, 8)
+    d, _ = cKDTree(p[v]).query(q)
+    close = d < cell
+    np.testing.assert_allclose(np.sqrt(np.asarray(d2))[close], d[close], atol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(ps)[np.asarray(i)] - q, axis=1)[close], d[close], atol=1e-5)
+    assert np.all(np.asarray(vs)[np.asarray(i)[close]])
+
+
+def test_entry_keypoints_are_padded_and_never_nan():
+    cfg = memory.MemoryConfig(max_maps=2, max_points=64, max_keyframes=3, max_keypoints=8, keypoint_dim=4)
+    e = _entry(0, cfg)
+    kp = memory.Keypoints(np.ones((5, 3), np.float32), np.ones((5, 4), np.float32) / 2, np.ones(5, bool))
+    bank, m = memory.add_map(memory.empty(cfg), e.replace(keypoints=kp))
+    assert bank.kp_points.shape == (2, 8, 3) and int(bank.kp_valid[m].sum()) == 5
+    bad = memory.Keypoints(kp.points.copy(), kp.desc, kp.valid)
+    bad.points[1, 0] = np.nan
+    cloud = memory.SequenceCloud(points=jnp.asarray(np.random.default_rng(0).normal(size=(100, 3)), jnp.float32),
+                                 colors=jnp.zeros((100, 3), jnp.uint8), conf=jnp.ones(100), valid=jnp.ones(100, bool))
+    entry = memory.build_entry(cloud, e.kf_desc, e.kf_valid, cfg, bad)
+    assert list(np.asarray(entry.keypoints.valid)) == [True, False, True, True, True]
+    assert np.all(np.isfinite(np.asarray(entry.keypoints.points)))
+    with pytest.raises(ValueError, match="dimension"):
+        memory.add_map(memory.empty(cfg), e.replace(keypoints=memory.Keypoints(kp.points, np.ones((5, 3)), kp.valid)))
+
+
+VISIT_CFG = memory.MemoryConfig(max_maps=4, max_points=1024, max_keyframes=8, max_keypoints=256,
+                                voxel_resolution=40.0, top_k=2)
+
+
+VISIT_FRAMES = 20  # every visit is padded to this many frames (extra frames invalid): one compilation
+
+
+@jax.jit
+def _prepare_visit(depth, conf, K, c2w, images, static, frame_ok, uv, kdesc, kvalid):
+    cfg = VISIT_CFG
+    d = jax.vmap(descriptors.image_descriptor)(images, static)
+    idx, ok = memory.select_keyframes(d, frame_ok, 0.1, cfg.max_keyframes)
+    cloud = memory.sequence_cloud(depth, conf, K, c2w, images, static, cfg)
+    kp = memory.lift_keypoints(uv, kdesc, kvalid, depth, K, c2w, 256)
+    return memory.build_entry(cloud, d[idx], ok, cfg, kp)
+
+
+def _visit_entry(seed, visit, frames):
+    from cm3d.data import synthetic
+    from cm3d.ops import keypoints
+
+    world = synthetic.WorldConfig(height=120, width=160, supersample=1, fps=1.0)
+    seq = synthetic.generate(seed, visit, frames, "slight", world)
+    static = ~seq.gt.dynamic_mask
+    f = keypoints.detect_sequence(seq.images, static, 48, contrast_threshold=0.01)
+    pad = lambda a: np.concatenate([a, np.repeat(a[:1], VISIT_FRAMES - frames, 0)])  # noqa: E731
+    ok = np.arange(VISIT_FRAMES) < frames
+    f32 = lambda a: jnp.asarray(pad(a), jnp.float32)  # noqa: E731
+    entry = _prepare_visit(f32(seq.depth), f32(seq.depth_conf), f32(seq.intrinsic), f32(seq.cam_to_world),
+                           jnp.asarray(pad(seq.images)), jnp.asarray(pad(static) & ok[:, None, None]), jnp.asarray(ok),
+                           f32(f.uv), f32(f.desc), jnp.asarray(pad(f.valid) & ok[:, None]))
+    s = seq.meta["prior_scale"]
+    prior_from_world = np.diag([s, s, s, 1.0]) @ np.linalg.inv(seq.gt.cam_to_world[0])
+    return entry, prior_from_world
+
+
+@pytest.fixture(scope="module")
+def visits():
+    """Two stored rooms (look-around visits), a revisit of room 1 and a room never stored."""
+    maps = [_visit_entry(s, 0, VISIT_FRAMES) for s in (1, 2)]
+    revisit = _visit_entry(2, 1, 10)
+    unseen = _visit_entry(10_001, 1, 10)
+    bank = memory.empty(VISIT_CFG)
+    for e, _ in maps:
+        bank, _ = memory.add_map(bank, e)
+    return bank, maps, revisit, unseen
+
+
+def test_revisit_is_recalled_verified_and_relocalised_and_new_room_rejected(visits):
+    bank, maps, (rev, rev_pfw), (new, _) = visits
+    queries = jax.tree.map(lambda a, b: jnp.stack([a, b]), rev, new)
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    fn = jax.jit(jax.vmap(lambda e, k: memory.identify(bank, e, VISIT_CFG, k)))
+    out = fn(queries, keys)
+    assert list(np.asarray(out.map_id)) == [1, -1]
+    v = jax.tree.map(lambda a: a[0], out.verification)
+    assert int(v.keypoint_inliers) >= VISIT_CFG.min_keypoint_inliers and float(v.fitness) >= VISIT_CFG.min_fitness
+    gt = maps[1][1] @ np.linalg.inv(rev_pfw)  # query prior frame -> map prior frame
+    T = np.asarray(v.transform)
+    s, s_gt = np.cbrt(np.linalg.det(T[:3, :3])), np.cbrt(np.linalg.det(gt[:3, :3]))
+    np.testing.assert_allclose(s, s_gt, rtol=0.05)
+    dR = (T[:3, :3] / s) @ (gt[:3, :3] / s_gt).T
+    assert np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))) < 3.0
+    # remember (one query at a time, jitted): the revisit updates map 1, the new room becomes map 2;
+    # its identification equals the vmapped batch's
+    remember = jax.jit(lambda b, e, k: memory.remember(b, e, VISIT_CFG, k))
+    b2, rep = remember(bank, rev, keys[0])
+    assert int(rep.map_id) == 1 and not bool(rep.created) and int(b2.visits[1]) == 2
+    assert np.all(np.isfinite(np.asarray(b2.points))) and np.all(np.isfinite(np.asarray(b2.kp_points)))
+    np.testing.assert_allclose(np.asarray(rep.transform), T, atol=1e-4)
+    b3, rep = remember(bank, new, keys[1])
+    assert int(rep.identification.map_id) == -1 and int(rep.recalled) == -1
+    np.testing.assert_allclose(np.asarray(rep.identification.verification.transform),
+                               np.asarray(out.verification.transform[1]), atol=1e-4)
+    assert int(rep.map_id) == 2 and bool(rep.created) and int(b3.num_maps) == 3

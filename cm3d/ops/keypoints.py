@@ -90,3 +90,67 @@ def sequence_matches(images: np.ndarray, cfg: KeypointConfig = KeypointConfig())
         N = cfg.max_matches
         return Matches(np.zeros((0, N, 2), np.float32), np.zeros((0, N, 2), np.float32), np.zeros((0, N), bool))
     return Matches(*(np.stack([getattr(p, f) for p in pairs]) for f in ("uv0", "uv1", "valid")))
+
+
+@struct.dataclass
+class Features:
+    """Detected keypoints of one image, strongest first: uv (N, 2) float32 pixels, desc (N, D)
+    float32 unit-norm descriptors, valid (N,) bool; N = capacity."""
+
+    uv: np.ndarray
+    desc: np.ndarray
+    valid: np.ndarray
+
+
+DESCRIPTOR_DIM = {"sift": 128, "orb": 256}
+
+
+def detect_features(image: np.ndarray, mask: np.ndarray | None = None, capacity: int = 256,
+                    cfg: KeypointConfig = KeypointConfig(), contrast_threshold: float | None = None) -> Features:
+    """Keypoints and descriptors of ``image`` inside ``mask`` (H, W) bool, padded to ``capacity``.
+
+    SIFT descriptors are RootSIFT (L1-normalised, square-rooted: unit L2, so the Euclidean distance
+    is Hellinger's); ORB's 256 bits become +-1/16 (unit L2, distance a monotone function of Hamming).
+    The strongest ``capacity`` responses are kept, strongest first. ``contrast_threshold``: SIFT's
+    (OpenCV default 0.04); lower finds keypoints on weakly textured, small images.
+    """
+    import cv2
+
+    if capacity < 1:
+        raise ValueError(f"capacity: must be >= 1, got {capacity}")
+    img = _gray(image)
+    if mask is not None and np.asarray(mask).shape != img.shape:
+        raise ValueError(f"mask: expected shape {img.shape}, got {np.asarray(mask).shape}")
+    if cfg.detector == "sift" and contrast_threshold is not None:
+        det = cv2.SIFT_create(nfeatures=cfg.max_features, contrastThreshold=contrast_threshold)
+    else:
+        det, _ = _detector(cfg)
+    m8 = None if mask is None else np.asarray(mask, np.uint8) * 255
+    kps, desc = det.detectAndCompute(img, m8)
+    D = DESCRIPTOR_DIM[cfg.detector]
+    uv, out, valid = np.zeros((capacity, 2), np.float32), np.zeros((capacity, D), np.float32), np.zeros(capacity, bool)
+    if desc is None or len(kps) == 0:
+        return Features(uv, out, valid)
+    order = np.argsort([-k.response for k in kps], kind="stable")[:capacity]
+    n = len(order)
+    if cfg.detector == "sift":
+        d = desc[order].astype(np.float32)
+        d = np.sqrt(d / np.maximum(d.sum(1, keepdims=True), 1e-12))
+    else:
+        d = (np.unpackbits(desc[order], axis=1).astype(np.float32) * 2 - 1) / 16.0
+    uv[:n] = [kps[i].pt for i in order]
+    out[:n] = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    valid[:n] = True
+    return Features(uv, out, valid)
+
+
+def detect_sequence(images: np.ndarray, masks: np.ndarray | None = None, capacity: int = 256,
+                    cfg: KeypointConfig = KeypointConfig(), contrast_threshold: float | None = None) -> Features:
+    """:func:`detect_features` per frame, stacked: arrays with a leading (S,) axis."""
+    feats = [detect_features(images[i], None if masks is None else masks[i], capacity, cfg, contrast_threshold)
+             for i in range(len(images))]
+    D = DESCRIPTOR_DIM[cfg.detector]
+    if not feats:
+        return Features(np.zeros((0, capacity, 2), np.float32), np.zeros((0, capacity, D), np.float32),
+                        np.zeros((0, capacity), bool))
+    return Features(*(np.stack([getattr(f, k) for f in feats]) for k in ("uv", "desc", "valid")))

@@ -1,0 +1,345 @@
+"""Memory bank recall, verification, relocalisation and map update (the paper's Tables 5 and 9).
+
+    .venv/bin/python experiments/memory_recall.py [--quick] [--json PATH] [--no-cache]
+
+Synthetic worlds (:mod:`cm3d.data.synthetic`, 120x160 renders, 1 frame per second): scene ``i``
+is stored from a 32-frame look-around visit (visit 0); a *revisit* query is a 12-frame visit of
+the same room from another place and direction (visit 1, other moving objects, its own prior
+scale and frame); an *unseen* query is a 12-frame visit of a room never stored (seeds from 10000).
+Priors are VGGT-like at the "slight" noise level; static pixels come from the ground-truth
+dynamic mask (the motion stage is evaluated elsewhere).
+
+Preparation (host, timed separately): image descriptors and keyframes, SIFT keypoints on static
+pixels (OpenCV) lifted to 3D with the prior depth and poses, static cloud, map entry. Queries
+(jit, vmapped over a batch of prepared queries, CPU): hashed 2D recall of ``top_k`` candidates,
+keypoint matching + Sim(3) RANSAC per candidate, Sim(3) ICP verification of the best.
+
+Tables:
+- recall per bank size (1, 50, 100, 200 maps): accuracy on revisits (accepted *and* the right
+  map), false accepts on unseen rooms, queries/s (batched, compile excluded); size 1 averages 50
+  single-map banks;
+- ablation at 200 maps: 2D only / 2D+3D keypoints (no ICP) / full 2D+3D+ICP;
+- relocalisation error of accepted revisits (rotation deg; translation of the relocalised first
+  camera, metres), median and mean;
+- map update: reconstruction Accuracy / Completion (metres, against the ground-truth static points
+  of both visits) of a map after its first visit and after merging a verified revisit.
+
+``--quick`` (the smoke test): 3 stored rooms, 2 unseen, 6-frame visits, one bank size (3), no
+ablation or map update: it checks that the script runs, not the figures (its time is mostly
+compilation).
+Generated and prepared visits are cached in ``~/.cache/cm3d/memory_recall`` (``--no-cache``: off).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import os
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from cm3d import memory
+from cm3d.data import synthetic
+from cm3d.data.atomic import atomic_write
+from cm3d.ops import descriptors, keypoints
+
+WORLD = synthetic.WorldConfig(height=120, width=160, supersample=1, fps=1.0)
+CFG = memory.MemoryConfig(max_maps=200, max_points=4096, max_keyframes=16, max_keypoints=512,
+                          voxel_resolution=40.0, pixel_stride=4, top_k=3)
+QUERY_KEYPOINTS = 256
+KP_PER_FRAME = 64
+SIFT_CONTRAST = 0.01  # OpenCV's default 0.04 finds almost nothing on weakly textured rooms at 120x160
+KEYFRAME_THRESHOLD = 0.1
+LEVEL = "slight"
+UNSEEN_SEED = 10_000
+CACHE = Path(os.environ.get("CM3D_CACHE", Path.home() / ".cache" / "cm3d")) / "memory_recall"
+
+
+@dataclasses.dataclass
+class Visit:
+    """A prepared visit: the entry (numpy pytree) and what the evaluation needs."""
+
+    entry: memory.MapEntry
+    prior_from_world: np.ndarray  # (4, 4) similarity world -> this visit's prior frame
+    static_world: np.ndarray  # (n, 3) ground-truth static points (metres), subsampled
+    prep_s: dict
+
+
+@jax.jit
+def _frame_descriptors(images, static):
+    return jax.vmap(descriptors.image_descriptor)(images, static)
+
+
+def _prepare_fn(cfg: memory.MemoryConfig, capacity: int):
+    @jax.jit
+    def prep(depth, conf, K, c2w, images, static, desc, uv, kdesc, kvalid):
+        idx, ok = memory.select_keyframes(desc, jnp.ones(desc.shape[0], bool), KEYFRAME_THRESHOLD, cfg.max_keyframes)
+        cloud = memory.sequence_cloud(depth, conf, K, c2w, images, static, cfg)
+        kp = memory.lift_keypoints(uv, kdesc, kvalid, depth, K, c2w, capacity)
+        return memory.build_entry(cloud, desc[idx], ok, cfg, kp)
+
+    return prep
+
+
+_PREP = {}
+
+
+def prepare(scene_seed: int, visit: int, frames: int, capacity: int, cfg: memory.MemoryConfig = CFG) -> Visit:
+    """Render, prior and prepare one visit (host + jit); timings per stage in ``prep_s``."""
+    t0 = time.perf_counter()
+    seq = synthetic.generate(scene_seed, visit, frames, LEVEL, WORLD)
+    t1 = time.perf_counter()
+    static = ~seq.gt.dynamic_mask
+    desc = _frame_descriptors(jnp.asarray(seq.images), jnp.asarray(static))
+    feats = keypoints.detect_sequence(seq.images, static, KP_PER_FRAME, contrast_threshold=SIFT_CONTRAST)
+    t2 = time.perf_counter()
+    key = (capacity, frames)
+    if key not in _PREP:
+        _PREP[key] = _prepare_fn(cfg, capacity)
+    f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+    entry = _PREP[key](f32(seq.depth), f32(seq.depth_conf), f32(seq.intrinsic), f32(seq.cam_to_world),
+                       jnp.asarray(seq.images), jnp.asarray(static), desc, jnp.asarray(feats.uv),
+                       jnp.asarray(feats.desc), jnp.asarray(feats.valid))
+    entry = jax.tree.map(np.asarray, entry)
+    t3 = time.perf_counter()
+    s = seq.meta["prior_scale"]
+    prior_from_world = np.diag([s, s, s, 1.0]) @ np.linalg.inv(seq.gt.cam_to_world[0])
+    pts = seq.gt.static_points(stride=4)
+    return Visit(entry, prior_from_world, pts[:: max(1, len(pts) // 20000)].astype(np.float32),
+                 {"render": t1 - t0, "features": t2 - t1, "entry": t3 - t2})
+
+
+def _cache_key(args) -> str:
+    """What a prepared visit depends on (verification thresholds do not invalidate the cache)."""
+    prep = {k: getattr(CFG, k) for k in ("max_points", "max_keyframes", "image_dim", "cloud_dim", "keypoint_dim",
+                                         "voxel_resolution", "min_conf_quantile", "pixel_stride", "normal_radius")}
+    text = json.dumps([args, dataclasses.asdict(WORLD), prep, KP_PER_FRAME, SIFT_CONTRAST, KEYFRAME_THRESHOLD, LEVEL, 2])
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def load_visits(specs, use_cache: bool) -> list[Visit]:
+    """Prepared visits for (seed, visit, frames, capacity) specs, from the cache when present."""
+    out = []
+    for spec in specs:
+        path = CACHE / f"{_cache_key(spec)}.npz"
+        if use_cache and path.exists():
+            z = np.load(path, allow_pickle=False)
+            leaves = [z[f"leaf{i}"] for i in range(int(z["n"]))]
+            treedef = jax.tree.structure(_template(spec[3]))
+            out.append(Visit(jax.tree.unflatten(treedef, leaves), z["pfw"], z["static"], json.loads(str(z["prep"]))))
+            continue
+        v = prepare(*spec)
+        if use_cache:
+            CACHE.mkdir(parents=True, exist_ok=True)
+            leaves = jax.tree.leaves(v.entry)
+            with atomic_write(path) as f:
+                np.savez(f, n=len(leaves), pfw=v.prior_from_world, static=v.static_world, prep=json.dumps(v.prep_s),
+                         **{f"leaf{i}": a for i, a in enumerate(leaves)})
+        out.append(v)
+    return out
+
+
+def _template(capacity):
+    P, K = CFG.max_points, CFG.max_keyframes
+    z = np.zeros
+    return memory.MapEntry(points=z((P, 3)), normals=z((P, 3)), conf=z(P), colors=z((P, 3)), point_valid=z(P),
+                           kf_desc=z((K, CFG.image_dim)), kf_valid=z(K), cloud_desc=z(CFG.cloud_dim), voxel_size=z(()),
+                           keypoints=memory.Keypoints(z((capacity, 3)), z((capacity, CFG.keypoint_dim)), z(capacity)))
+
+
+def build_bank(maps: list[Visit], cfg: memory.MemoryConfig) -> memory.MemoryBank:
+    insert = jax.jit(memory.insert_map)
+    bank = memory.empty(cfg)
+    for v in maps:
+        bank, m = insert(bank, v.entry)
+        if int(m) < 0:
+            raise memory.MemoryFullError("bank full while building the experiment bank")
+    return bank
+
+
+def stack(visits: list[Visit]):
+    return jax.tree.map(lambda *a: jnp.asarray(np.stack(a)), *[v.entry for v in visits])
+
+
+_IDENTIFY = {}
+
+
+def identify_batch(bank, queries, cfg: memory.MemoryConfig, batch: int = 50):
+    """Identify every query (a stacked entry) against the bank, ``batch`` at a time (jit + vmap).
+    Returns (map_id (Q,), transform (Q, 4, 4), seconds excluding compilation)."""
+    if cfg not in _IDENTIFY:
+        _IDENTIFY[cfg] = jax.jit(jax.vmap(lambda b, e, k: memory.identify(b, e, cfg, k), in_axes=(None, 0, 0)))
+    fn = _IDENTIFY[cfg]
+    Q = queries.kf_desc.shape[0]
+    batch = min(batch, Q)
+    keys = jax.random.split(jax.random.PRNGKey(0), Q)
+    chunks = [(i, min(i + batch, Q)) for i in range(0, Q, batch)]
+
+    def take(i, j):
+        sl = jax.tree.map(lambda a: a[i:j], queries)
+        ks = keys[i:j]
+        if j - i < batch:  # pad to one shape (one compilation)
+            sl = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[:1], batch - (j - i), 0)]), sl)
+            ks = jnp.concatenate([ks, jnp.repeat(ks[:1], batch - (j - i), 0)])
+        return sl, ks
+
+    data = [take(i, j) for i, j in chunks]
+    jax.block_until_ready(fn(bank, *data[0]).map_id)  # compile
+    t = time.perf_counter()
+    outs = [fn(bank, *d) for d in data]
+    jax.block_until_ready([o.map_id for o in outs])
+    dt = time.perf_counter() - t
+    ids = np.concatenate([np.asarray(o.map_id)[: j - i] for o, (i, j) in zip(outs, chunks)])
+    T = np.concatenate([np.asarray(o.verification.transform)[: j - i] for o, (i, j) in zip(outs, chunks)])
+    return ids, T, dt
+
+
+def _rot_deg(R):
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+
+
+def reloc_errors(maps, revisits, ids, T, truth):
+    """Rotation (deg) and first-camera translation (m) errors of accepted, correct revisits."""
+    rot, trans = [], []
+    for q, (m, Ti) in enumerate(zip(ids, T)):
+        if m != truth[q]:
+            continue
+        M = maps[m].prior_from_world
+        gt = M @ np.linalg.inv(revisits[q].prior_from_world)
+        s_gt, s_est = np.cbrt(np.linalg.det(gt[:3, :3])), np.cbrt(np.linalg.det(Ti[:3, :3]))
+        rot.append(_rot_deg((Ti[:3, :3] / s_est) @ (gt[:3, :3] / s_gt).T))
+        s_map = np.cbrt(np.linalg.det(M[:3, :3]))
+        trans.append(float(np.linalg.norm(Ti[:3, 3] - gt[:3, 3]) / s_map))  # map units -> metres
+    return np.array(rot), np.array(trans)
+
+
+def map_update(maps, revisits, ids, T, truth, cfg, count):
+    """Accuracy/Completion (m) of maps before and after merging their verified revisit."""
+    from cm3d.eval.metrics import reconstruction_metrics
+
+    update = jax.jit(lambda b, m, e, t: memory.update_map(b, m, e, t, cfg))
+    one = dataclasses.replace(cfg, max_maps=1)
+    rows = []
+    for q in np.flatnonzero(ids == truth)[:count]:
+        m = int(ids[q])
+        bank = build_bank([maps[m]], one)
+        after = update(bank, 0, revisits[q].entry, jnp.asarray(T[q], jnp.float32))
+        gt = np.concatenate([maps[m].static_world, revisits[q].static_world])
+        w = np.linalg.inv(maps[m].prior_from_world)
+        res = []
+        for b in (bank, after):
+            p = np.asarray(b.points[0])[np.asarray(b.point_valid[0])]
+            res.append(reconstruction_metrics(p @ w[:3, :3].T + w[:3, 3], gt))
+        rows.append((res[0]["accuracy"], res[0]["completion"], res[1]["accuracy"], res[1]["completion"]))
+    return np.array(rows)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--json", type=Path)
+    ap.add_argument("--no-cache", action="store_true")
+    args = ap.parse_args(argv)
+    quick = args.quick
+    n_maps, n_unseen = (3, 2) if quick else (200, 200)
+    sizes = (3,) if quick else (1, 50, 100, 200)
+    map_frames, query_frames = (6, 6) if quick else (32, 12)  # quick: one shape, fewer compilations
+    map_kp = QUERY_KEYPOINTS if quick else CFG.max_keypoints
+    single = 50
+    use_cache = not args.no_cache and not quick
+
+    t = time.perf_counter()
+    maps = load_visits([(s, 0, map_frames, map_kp) for s in range(n_maps)], use_cache)
+    revisits = load_visits([(s, 1, query_frames, QUERY_KEYPOINTS) for s in range(n_maps)], use_cache)
+    unseen = load_visits([(UNSEEN_SEED + s, 1, query_frames, QUERY_KEYPOINTS) for s in range(n_unseen)], use_cache)
+    t_data = time.perf_counter() - t
+    prep = {k: np.mean([v.prep_s[k] for v in revisits + unseen]) for k in ("render", "features", "entry")}
+    print(f"data: {n_maps} maps ({map_frames} frames), {n_maps} revisits + {n_unseen} unseen queries "
+          f"({query_frames} frames), {WORLD.height}x{WORLD.width}; {t_data:.1f} s (cached: {use_cache})")
+    print(f"host preparation per query (not in q/s): render {prep['render'] * 1e3:.0f} ms, image descriptors + "
+          f"SIFT {prep['features'] * 1e3:.0f} ms, entry (jit) {prep['entry'] * 1e3:.0f} ms")
+
+    rq, uq = stack(revisits), stack(unseen)
+    allq = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), rq, uq)
+    figures, rows = {}, []
+    full = {}
+    for n in sizes:
+        cfg = dataclasses.replace(CFG, max_maps=n)
+        if n == 1:
+            hits = 0
+            for s in range(single):
+                bank = build_bank([maps[s]], cfg)
+                ids, _, _ = identify_batch(bank, jax.tree.map(lambda a: a[s: s + 1], rq), cfg, batch=1)
+                hits += int(ids[0] == 0)
+            acc = hits / single
+            bank = build_bank([maps[0]], cfg)
+            ids, _, dt = identify_batch(bank, allq, cfg)
+            fa = float(np.mean(ids[n_maps:] >= 0))
+        else:
+            bank = build_bank(maps[:n], cfg)
+            ids, T, dt = identify_batch(bank, allq, cfg)
+            acc = float(np.mean(ids[:n] == np.arange(n)))
+            fa = float(np.mean(ids[n_maps:] >= 0))
+            full = {"bank": bank, "ids": ids, "T": T, "cfg": cfg, "n": n}
+        qps = (n_maps + n_unseen) / dt
+        figures[f"accuracy_{n}"], figures[f"qps_{n}"] = acc, qps
+        rows.append((n, acc, fa, qps))
+    print("\nrecall (accuracy: revisits accepted as the right map; false accepts: unseen rooms accepted)")
+    print(f"{'maps':>6} {'accuracy':>9} {'false acc.':>10} {'queries/s':>10}")
+    for n, acc, fa, qps in rows:
+        print(f"{n:>6} {100 * acc:>8.1f}% {100 * fa:>9.1f}% {qps:>10.1f}")
+
+    n, bank, ids, T = full["n"], full["bank"], full["ids"], full["T"]
+    figures["false_accept"] = float(np.mean(ids[n_maps:] >= 0))
+    print(f"\nablation at {n} maps")
+    print(f"{'verification':>22} {'accuracy':>9} {'false acc.':>10} {'queries/s':>10}")
+    modes = (("full", "2D+3D+ICP"),) if quick else (("none", "2D only"), ("keypoints", "2D+3D (no ICP)"),
+                                                    ("full", "2D+3D+ICP"))
+    for mode, name in modes:
+        cfg = dataclasses.replace(full["cfg"], verification=mode)
+        if mode == "full":
+            ids_m, dt = ids, (n_maps + n_unseen) / figures[f"qps_{n}"]
+        else:
+            ids_m, _, dt = identify_batch(bank, allq, cfg)
+        acc, fa = float(np.mean(ids_m[:n] == np.arange(n))), float(np.mean(ids_m[n_maps:] >= 0))
+        print(f"{name:>22} {100 * acc:>8.1f}% {100 * fa:>9.1f}% {(n_maps + n_unseen) / dt:>10.1f}")
+        figures[f"ablation_{mode}_accuracy"], figures[f"ablation_{mode}_false_accept"] = acc, fa
+        figures[f"ablation_{mode}_qps"] = (n_maps + n_unseen) / dt
+
+    truth = np.arange(n_maps)
+    rot, trans = reloc_errors(maps, revisits, ids[:n_maps], T[:n_maps], truth)
+    figures["reloc_rot_deg"] = float(np.median(rot)) if len(rot) else float("nan")
+    figures["reloc_trans"] = float(np.median(trans)) if len(trans) else float("nan")
+    print(f"\nrelocalisation of {len(rot)} accepted revisits (query prior frame -> map frame, Sim(3))")
+    if len(rot):
+        print(f"  rotation error    median {np.median(rot):.2f} deg, mean {np.mean(rot):.2f} deg, "
+              f"95th pct {np.percentile(rot, 95):.2f} deg")
+        print(f"  translation error median {100 * np.median(trans):.1f} cm, mean {100 * np.mean(trans):.1f} cm, "
+              f"95th pct {100 * np.percentile(trans, 95):.1f} cm (first camera, metres)")
+
+    upd = map_update(maps, revisits, ids[:n_maps], T[:n_maps], truth, full["cfg"], 40) if not quick else []
+    if len(upd):
+        a0, c0, a1, c1 = upd.mean(0)
+        figures["acc_before_update"], figures["acc_after_update"] = float(a0), float(a1)
+        figures["comp_before_update"], figures["comp_after_update"] = float(c0), float(c1)
+        better = float(np.mean(upd[:, 3] < upd[:, 1]))
+        print(f"\nmap update over {len(upd)} maps (metres, lower is better; ground truth: static points of both visits)")
+        print(f"{'':>14} {'Accuracy':>9} {'Completion':>11}")
+        print(f"{'first visit':>14} {a0:>9.4f} {c0:>11.4f}")
+        print(f"{'+ revisit':>14} {a1:>9.4f} {c1:>11.4f}")
+        print(f"completion improved on {100 * better:.0f}% of the maps")
+    figures["prep_ms_per_query"] = 1e3 * sum(prep.values())
+    if args.json:
+        with atomic_write(args.json) as f:
+            f.write(json.dumps(figures, indent=1).encode())
+    return figures
+
+
+if __name__ == "__main__":
+    main()
