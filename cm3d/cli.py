@@ -40,11 +40,129 @@ def _eval(args) -> int:
     return 0
 
 
+class _Progress:
+    """``progress(stage, done, total)`` callback drawing one tqdm bar per stage on stderr."""
+
+    def __init__(self, enabled: bool = True):
+        self.enabled = enabled
+        self.bars = {}
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        if not self.enabled:
+            return
+        from tqdm import tqdm
+
+        bar = self.bars.get(stage)
+        if bar is None:
+            bar = self.bars[stage] = tqdm(total=total, desc=stage, unit="frame" if total > 1 else "step",
+                                          file=sys.stderr, leave=True, dynamic_ncols=True)
+        bar.update(done - bar.n)
+        if done >= total:
+            bar.close()
+
+
+def _compile_cache() -> None:
+    """Keep compiled programs between runs (``$CM3D_JAX_CACHE``, default ~/.cache/cm3d/jax; ``off``
+    disables): a second ``cm3d run`` of the same image size skips the pipeline's compilation."""
+    import os
+
+    path = os.environ.get("CM3D_JAX_CACHE", str(Path.home() / ".cache" / "cm3d" / "jax"))
+    if path.lower() in ("", "0", "off", "none"):
+        return
+    import jax
+
+    try:
+        jax.config.update("jax_compilation_cache_dir", path)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 2.0)
+    except Exception:  # noqa: BLE001  an older jax without the option: just compile
+        pass
+
+
+def _load_inputs(paths):
+    """One sequence, or (several paths) chunks of one long video stitched into one."""
+    from cm3d.data.loaders import load_input
+
+    if len(paths) == 1:
+        return load_input(paths[0]), None
+    try:
+        from cm3d import stitch
+    except ImportError:
+        raise ValueError("several inputs: long-video chunk stitching is not available in this version") from None
+    chunks = stitch.load_chunks(paths)
+    res = stitch.stitch_chunks(chunks)
+    return res.sequence, res
+
+
+def _run(args) -> int:
+    import dataclasses
+
+    from cm3d import memory, outputs, pipeline
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is not a folder")
+    bank = None
+    bank_path = Path(args.memory) if args.memory else None
+    if bank_path is not None and bank_path.exists():
+        bank, mem_cfg = memory.load(bank_path)
+    seq, stitched = _load_inputs(args.inputs)
+    H, W = seq.image_size
+    changes = {"use_memory": not args.no_memory}
+    if args.keyframe_interval is not None:
+        changes["keyframe_interval"] = args.keyframe_interval
+    if args.stride is not None:
+        changes["stride"] = args.stride
+    cfg = pipeline.config_for(H, W, **changes)
+    if bank is not None:
+        cfg = dataclasses.replace(cfg, memory=mem_cfg)
+    _compile_cache()
+    print(f"{args.inputs[0] if len(args.inputs) == 1 else f'{len(args.inputs)} chunks'}: {seq.num_frames} frames "
+          f"at {H}x{W}; windows of {cfg.keyframe_interval} frames; memory "
+          f"{'off' if args.no_memory else (str(bank_path) if bank_path else 'in-process only')}")
+    bank, (res,) = pipeline.run([seq], cfg, bank, progress=_Progress(not args.quiet))
+    m = outputs.write_results(out, res, bank if cfg.use_memory else None, pictures=not args.no_pictures)
+    if stitched is not None:
+        outputs.write_json(out / "stitch.json", {"ranges": stitched.ranges, "refined": stitched.refined,
+                                                 "chunk_transforms": stitched.chunk_transforms})
+    if bank_path is not None and cfg.use_memory:
+        memory.save(bank, bank_path, cfg.memory)
+    for w in res.windows:
+        print("  " + _window_line(w))
+    if m:
+        p, r = m["prior"], m["refined"]
+        print(f"ATE prior {p['ate']:.5f} -> refined {r['ate']:.5f} ({-m['ate_reduction_pct']:+.1f} %), "
+              f"RPE trans {p['rpe_trans']:.5f} -> {r['rpe_trans']:.5f}, "
+              f"mask IoU {m.get('mask', {}).get('iou', float('nan')):.3f}")
+    saved = f"; memory bank {bank_path} ({int(bank.map_valid.sum())} maps)" if bank_path and cfg.use_memory else ""
+    print(f"wrote {out}/ (trajectory.txt, trajectory_prior.txt, masks/, static_map.ply, recall.json"
+          f"{', metrics.json' if m else ''}{'' if args.no_pictures else ', pictures'}){saved}")
+    return 0
+
+
+def _window_line(w: dict) -> str:
+    """One line per window: frames, memory decision, refinement."""
+    a, b = w["frames"]
+    if not w.get("memory", True):
+        mem = "memory off"
+    elif w["accepted"]:
+        mem = (f"recalled map {w['recalled_map']} ({w['keypoint_inliers'][0] if w['keypoint_inliers'] else 0} keypoint"
+               f" / {w['inlier_count']} ICP inliers, RMSE {w['rmse']:.4f}, scale {w['scale']:.3f})")
+    elif w["created_map"]:
+        mem = f"new map {w['map_id']}" + (f" (candidates {w['candidates']} rejected)" if w["candidates"] else "")
+    else:
+        mem = "not stored (bank full)"
+    ref = "refined" if w["refined"] else "kept prior (gate)"
+    return (f"frames {a:4d}-{b:4d}: {mem}; {ref}, {w['landmarks']} landmarks "
+            f"({w['memory_landmarks']} from memory), {w['observations']} observations")
+
+
 def _demo(args) -> int:
     from cm3d.demo import run_demo
 
+    _compile_cache()
     run_demo(scene=args.scene, visits=args.visits, frames=args.frames, quick=args.quick,
-             json_path=args.json)
+             json_path=args.json, out=args.out, height=args.height, width=args.width,
+             progress=_Progress(not args.quiet))
     return 0
 
 
@@ -98,12 +216,37 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.set_defaults(func=_eval)
 
-    d = sub.add_parser("demo", help="metrics of noisy priors vs ground truth on a synthetic world")
+    r = sub.add_parser("run", help="run the pipeline on a sequence and write its outputs",
+                       description="Motion masks, refined trajectory, static map and memory recall of one "
+                       "sequence. Writes trajectory.txt (TUM, refined), trajectory_prior.txt, masks/, "
+                       "static_map.ply, recall.json, metrics.json (with ground truth) and PNG pictures.")
+    r.add_argument("inputs", nargs="+", metavar="INPUT",
+                   help="a .npz sequence, an image folder (images/ + priors.npz) or a TUM RGB-D folder; "
+                   "several .npz files: overlapping chunks of one long video, stitched first")
+    r.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    r.add_argument("--memory", metavar="BANK", help="memory bank file: loaded if present, updated, saved atomically")
+    r.add_argument("--no-memory", action="store_true", help="no recall / verify / update")
+    r.add_argument("--keyframe-interval", type=int, default=None, metavar="N",
+                   help="frames per memory / factor-graph window (default 20; 4 for small images)")
+    r.add_argument("--stride", type=int, default=None,
+                   help="back end at 1/stride resolution (default 2; 1 for small images)")
+    r.add_argument("--no-pictures", action="store_true", help="skip the PNG pictures")
+    r.add_argument("--quiet", action="store_true", help="no progress bars")
+    r.set_defaults(func=_run)
+
+    d = sub.add_parser("demo", help="the full pipeline on a multi-visit synthetic world, with one memory",
+                       description="Render several visits of one synthetic scene (moderate prior noise), run the "
+                       "pipeline over them threading one memory bank, print prior vs refined metrics and the "
+                       "recall decisions, and write every output per visit.")
     d.add_argument("--scene", type=int, default=0)
     d.add_argument("--visits", type=int, default=3)
-    d.add_argument("--frames", type=int, default=24)
+    d.add_argument("--frames", type=int, default=None, help="frames per visit (default 40; 8 with --quick)")
+    d.add_argument("--height", type=int, default=None, help="image height (default 384; 48 with --quick)")
+    d.add_argument("--width", type=int, default=None, help="image width (default 512; 64 with --quick)")
+    d.add_argument("--out", default="out/demo", metavar="DIR", help="output folder (one subfolder per visit)")
     d.add_argument("--quick", action="store_true", help="tiny images, for smoke tests")
     d.add_argument("--json", default=None, metavar="PATH", help="also write the table as JSON")
+    d.add_argument("--quiet", action="store_true", help="no progress bars")
     d.set_defaults(func=_demo)
 
     m = sub.add_parser("memory", help="list, show or remove maps of a memory bank file")
@@ -119,9 +262,12 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     try:
         rc = args.func(args)
-    except (ValueError, FileNotFoundError) as err:
+    except (ValueError, FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError) as err:
         print(f"cm3d {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"cm3d {args.command}: interrupted", file=sys.stderr)
+        return 130
     if args.command not in ("eval", "memory"):
         print(f"done in {time.perf_counter() - t0:.1f} s")
     return rc

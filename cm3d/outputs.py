@@ -14,7 +14,8 @@ import numpy as np
 from cm3d.data.atomic import atomic_write
 from cm3d.data.tum import write_tum
 
-__all__ = ["write_json", "write_masks", "write_ply", "write_tum"]
+__all__ = ["write_json", "write_masks", "write_ply", "write_tum", "static_map", "sequence_metrics",
+           "memory_points", "write_results"]
 
 
 def _plain(obj):
@@ -78,3 +79,116 @@ def write_ply(path, points: np.ndarray, colors: np.ndarray | None = None) -> Non
     with atomic_write(path) as f:
         f.write(("\n".join(header) + "\nend_header\n").encode("ascii"))
         f.write(rec.tobytes())
+
+
+# ----------------------------------------------------------------------------------------------
+# A pipeline run's results (``cm3d run`` / ``cm3d demo``)
+
+
+def static_map(seq, poses: np.ndarray, masks: np.ndarray, stride: int = 4, voxel_ratio: float = 200.0,
+               conf_quantile: float = 0.3):
+    """Static point cloud of a sequence: every ``stride``-th pixel that is static (``~masks``), has
+    positive depth and confidence above the sequence's ``conf_quantile``, lifted with the prior depth
+    and the refined ``poses`` (S, 4, 4), averaged per voxel (extent / ``voxel_ratio``).
+    Returns (points (N, 3) float32, colours (N, 3) uint8)."""
+    d = np.asarray(seq.depth)[:, ::stride, ::stride].astype(np.float64)
+    c = np.asarray(seq.depth_conf)[:, ::stride, ::stride]
+    ok = (d > 0) & np.isfinite(d) & ~np.asarray(masks)[:, ::stride, ::stride]
+    if not ok.any():
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+    ok &= c >= np.quantile(c[ok], conf_quantile)
+    S, h, w = d.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64) * stride
+    uv1 = np.stack([u, v, np.ones_like(u)], -1)
+    rays = np.einsum("sij,hwj->shwi", np.linalg.inv(np.asarray(seq.intrinsic, np.float64)), uv1)
+    pc = rays * d[..., None]
+    P = np.asarray(poses, np.float64)
+    pw = np.einsum("sij,shwj->shwi", P[:, :3, :3], pc) + P[:, None, None, :3, 3]
+    pts, cols = pw[ok], np.asarray(seq.images)[:, ::stride, ::stride][ok].astype(np.float64)
+    extent = float(np.max(np.ptp(pts, axis=0))) if len(pts) > 1 else 1.0
+    vs = max(extent / voxel_ratio, 1e-9)
+    keys = np.floor(pts / vs).astype(np.int64)
+    _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.reshape(-1)
+    mean = lambda x: np.stack([np.bincount(inv, x[:, k]) for k in range(3)], -1) / counts[:, None]  # noqa: E731
+    return mean(pts).astype(np.float32), np.clip(np.round(mean(cols)), 0, 255).astype(np.uint8)
+
+
+def sequence_metrics(result) -> dict | None:
+    """Metrics of a :class:`cm3d.pipeline.SequenceResult` against its ground truth (None without):
+    ATE / RPE of the prior and the refined trajectory, prior depth Abs Rel / δ<1.25, mask IoU."""
+    from cm3d.eval import metrics
+
+    seq = result.sequence
+    gt = seq.gt
+    if gt is None:
+        return None
+    ts = seq.timestamps
+    out = {"frames": int(seq.num_frames),
+           "prior": metrics.evaluate_trajectories(ts, gt.cam_to_world, ts, result.prior),
+           "refined": metrics.evaluate_trajectories(ts, gt.cam_to_world, ts, result.poses)}
+    a, b = out["prior"]["ate"], out["refined"]["ate"]
+    out["ate_reduction_pct"] = 100.0 * (a - b) / a if a > 0 else 0.0
+    dm = metrics.depth_metrics(seq.depth, gt.depth, gt.depth > 0)
+    out["depth_prior"] = {k: float(v) for k, v in dm.items()}
+    if gt.dynamic_mask is not None:
+        mm = metrics.mask_metrics(result.masks, gt.dynamic_mask)
+        out["mask"] = {k: float(v) for k, v in mm.items()}
+    return out
+
+
+def memory_points(bank, result):
+    """Points of the map this sequence was last recalled into / wrote, in the sequence's frame, and
+    whether that map was *recalled* (it existed before this sequence) -> (points, colours, recalled)."""
+    wins = [w for w in result.windows if w["map_id"] >= 0]
+    if bank is None or not wins:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), False
+    acc = [w for w in result.windows if w["accepted"]]
+    w = acc[-1] if acc else wins[-1]
+    m = w["recalled_map"] if acc else w["map_id"]
+    T = np.asarray(w["transform"], np.float64) if acc else np.eye(4)
+    ok = np.asarray(bank.point_valid[m])
+    pts = np.asarray(bank.points[m], np.float64)[ok]
+    pts = (pts - T[:3, 3]) @ np.linalg.inv(T[:3, :3]).T
+    created = {x["map_id"] for x in result.windows if x["created_map"]}
+    return pts.astype(np.float32), np.asarray(bank.colors[m])[ok], bool(acc) and m not in created
+
+
+def write_results(out_dir, result, bank=None, overlay_every: int = 5, pictures: bool = True) -> dict:
+    """Everything a user looks at for one sequence, in ``out_dir``: trajectory.txt (refined, TUM),
+    trajectory_prior.txt, masks/NNNNNN.png, static_map.ply, recall.json, metrics.json (with ground
+    truth) and pictures (mask overlays, trajectories, top-down map). Returns the metrics (or {})."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    seq = result.sequence
+    write_tum(out / "trajectory.txt", seq.timestamps, result.poses)
+    write_tum(out / "trajectory_prior.txt", seq.timestamps, result.prior)
+    write_masks(out / "masks", result.masks)
+    pts, cols = static_map(seq, result.poses, result.masks)
+    write_ply(out / "static_map.ply", pts, cols)
+    write_json(out / "recall.json", {"windows": result.windows})
+    m = sequence_metrics(result)
+    if m is not None:
+        write_json(out / "metrics.json", m)
+    if pictures:
+        from cm3d.eval import metrics as em
+        from cm3d.eval import plots
+
+        plots.save_mask_overlays(out / "overlays", seq.images, result.masks, every=overlay_every)
+        trajs = {"prior": result.prior, "refined": result.poses}
+        if seq.gt is not None:
+            import jax
+
+            with jax.enable_x64(True):
+                trajs = {k: np.asarray(em.align_trajectory(v, seq.gt.cam_to_world)) for k, v in trajs.items()}
+            trajs["ground truth"] = seq.gt.cam_to_world
+        plots.plot_trajectories(out / "trajectory.png", trajs, title="prior vs refined" +
+                                (" vs ground truth (Sim3-aligned)" if seq.gt is not None else ""))
+        mpts, mcols, recalled = memory_points(bank, result)
+        allp = np.concatenate([pts, mpts]) if len(mpts) else pts
+        if len(allp):
+            allc = np.concatenate([cols, mcols]) if len(mpts) else cols
+            flag = np.concatenate([np.zeros(len(pts), bool), np.full(len(mpts), recalled)])
+            plots.plot_topdown_map(out / "topdown_map.png", allp, allc, from_memory=flag, cameras=result.poses,
+                                   title="static map" + (" (recalled memory brighter)" if recalled else ""))
+    return m or {}

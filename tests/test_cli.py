@@ -50,14 +50,82 @@ def test_generate_writes_loadable_sequences_and_trajectories(tmp_path, capsys):
                      "--est", str(seqs[1].with_suffix(".prior.txt")), "--json"]) == 0
 
 
-def test_demo_quick_prints_table_and_json(tmp_path, capsys):
+def test_demo_quick_runs_pipeline_prints_table_and_json(tmp_path, capsys):
     out = tmp_path / "demo.json"
-    assert cli.main(["demo", "--quick", "--visits", "1", "--frames", "4", "--json", str(out)]) == 0
+    assert cli.main(["demo", "--quick", "--visits", "2", "--frames", "8", "--out", str(tmp_path / "demo"),
+                     "--json", str(out), "--quiet"]) == 0
     text = capsys.readouterr().out
-    assert "moderate" in text and "ate_se3" in text
+    assert "ate_refined" in text and "memory decisions" in text and "new map 0" in text
     rows = json.loads(out.read_text())
-    assert [r["level"] for r in rows] == ["none", "slight", "moderate", "severe"]
-    assert rows[0]["ate"] < 1e-6 < rows[-1]["ate"]
+    assert [r["visit"] for r in rows] == [0, 1]
+    assert all(r["ate_prior"] > 0 and np.isfinite(r["ate_refined"]) for r in rows)
+    assert (tmp_path / "demo" / "memory.cm3d").exists()
+    assert (tmp_path / "demo" / "visit01" / "trajectory.txt").exists()
+
+
+@pytest.fixture(scope="module")
+def small_visits(tmp_path_factory):
+    from cm3d.data import synthetic
+
+    d = tmp_path_factory.mktemp("visits")
+    wcfg = synthetic.WorldConfig(height=48, width=64, supersample=1)
+    paths = []
+    for v in range(2):
+        path = d / f"visit{v}.npz"
+        io.save_sequence(path, synthetic.generate(0, v, 8, "moderate", wcfg))
+        paths.append(path)
+    return paths
+
+
+def test_run_writes_every_output_and_memory_round_trip(tmp_path, small_visits, capsys):
+    bank = tmp_path / "bank.cm3d"
+    v0 = str(small_visits[0])
+    assert cli.main(["run", v0, "--out", str(tmp_path / "a"), "--memory", str(bank), "--quiet"]) == 0
+    a = tmp_path / "a"
+    for name in ("trajectory.txt", "trajectory_prior.txt", "static_map.ply", "recall.json", "metrics.json",
+                 "trajectory.png", "topdown_map.png"):
+        assert (a / name).is_file(), name
+    assert len(list((a / "masks").glob("*.png"))) == 8 and list((a / "overlays").glob("*.png"))
+    ts, c2w = io.read_tum(a / "trajectory.txt")
+    assert c2w.shape == (8, 4, 4) and np.all(np.isfinite(c2w))
+    m = json.loads((a / "metrics.json").read_text())
+    assert {"prior", "refined", "depth_prior", "mask"} <= set(m) and m["refined"]["pairs"] == 8
+    rec = json.loads((a / "recall.json").read_text())["windows"]
+    assert rec[0]["created_map"] and rec[0]["map_id"] == 0 and len(rec[0]["transform"]) == 4
+    assert bank.is_file()
+    # the trajectory evaluates with cm3d eval (evo's protocol) against the ground truth
+    io.write_tum(tmp_path / "gt.txt", ts, io.load_sequence(v0).gt.cam_to_world)
+    assert cli.main(["eval", "--gt", str(tmp_path / "gt.txt"), "--est", str(a / "trajectory.txt"), "--json"]) == 0
+    capsys.readouterr()
+    # second run with the same bank: the scene is recalled from the saved memory
+    assert cli.main(["run", v0, "--out", str(tmp_path / "b"), "--memory", str(bank), "--quiet"]) == 0
+    assert "recalled map 0" in capsys.readouterr().out
+    rec = json.loads((tmp_path / "b" / "recall.json").read_text())["windows"]
+    assert rec[0]["accepted"] and rec[0]["recalled_map"] == 0 and not rec[0]["created_map"]
+    assert cli.main(["memory", "ls", str(bank)]) == 0
+    assert "1 of 4 maps" in capsys.readouterr().out  # recalled and updated, not a second map
+
+
+def test_run_bad_inputs_are_one_line_errors(tmp_path, small_visits, capsys):
+    assert cli.main(["run", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "no such file" in err and err.count("\n") == 1
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip file")
+    assert cli.main(["run", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("cm3d run: error:") and err.count("\n") == 1
+    broken = tmp_path / "broken.cm3d"
+    broken.write_bytes(b"garbage")
+    assert cli.main(["run", str(small_visits[0]), "--out", str(tmp_path / "o"), "--memory", str(broken)]) == 2
+    assert "not a cm3d memory bank" in capsys.readouterr().err
+    assert cli.main(["run", str(small_visits[0]), "--out", str(tmp_path / "o"), "--keyframe-interval", "1"]) == 2
+    assert "keyframe_interval" in capsys.readouterr().err
+
+
+def test_run_help():
+    out = subprocess.run([sys.executable, "-m", "cm3d.cli", "run", "--help"], capture_output=True, text=True)
+    assert out.returncode == 0 and "--memory" in out.stdout and "static_map.ply" in out.stdout
 
 
 def test_import_cm3d_is_light():

@@ -48,3 +48,53 @@ def test_masks_json_and_pictures(tmp_path):
     for name in ("traj.png", "map.png", "ov/overlay_000001.png"):
         img = cv2.imread(str(tmp_path / name))
         assert img is not None and img.std() > 1
+
+
+def _toy_result(with_gt: bool = True):
+    """A hand-made SequenceResult (no pipeline run): a camera sliding along x over a plane at z = 2."""
+    from cm3d.data.sequence import GroundTruth, Sequence
+    from cm3d.pipeline import SequenceResult
+
+    S, H, W = 4, 16, 20
+    K = np.broadcast_to(np.array([[20.0, 0, 9.5], [0, 20.0, 7.5], [0, 0, 1]]), (S, 3, 3)).copy()
+    poses = np.tile(np.eye(4), (S, 1, 1))
+    poses[:, 0, 3] = 0.1 * np.arange(S)
+    depth = np.full((S, H, W), 2.0, np.float32)
+    images = np.random.default_rng(0).integers(0, 256, (S, H, W, 3)).astype(np.uint8)
+    masks = np.zeros((S, H, W), bool)
+    masks[:, 4:8, 4:8] = True
+    gt = GroundTruth(cam_to_world=poses, depth=depth, intrinsic=K, dynamic_mask=masks) if with_gt else None
+    seq = Sequence(images=images, depth=depth, depth_conf=np.ones((S, H, W), np.float32), intrinsic=K,
+                   cam_to_world=poses, timestamps=np.arange(S) * 0.1, gt=gt)
+    noisy = poses.copy()
+    noisy[:, 1, 3] += 0.01 * np.array([0.0, 1.0, -1.0, 0.5])
+    win = {"frames": [0, 3], "memory": True, "candidates": [], "votes": [], "scores": [], "keypoint_inliers": [],
+           "accepted": False, "recalled_map": -1, "inlier_count": 0, "rmse": 0.0, "fitness": 0.0, "scale": 1.0,
+           "transform": np.eye(4).tolist(), "map_id": 0, "created_map": True, "refined": True, "gate_stat": 1.0,
+           "gate_threshold": 0.5, "landmarks": 3, "memory_landmarks": 0, "observations": 9, "inliers": 9,
+           "lm_iterations": 2}
+    return SequenceResult(poses=poses, prior=noisy, masks=masks, windows=[win], sequence=seq)
+
+
+def test_static_map_skips_dynamic_pixels_and_lifts_with_poses():
+    res = _toy_result()
+    pts, cols = outputs.static_map(res.sequence, res.poses, res.masks, stride=1)
+    assert len(pts) > 0 and cols.dtype == np.uint8 and pts.shape == cols.shape
+    np.testing.assert_allclose(pts[:, 2], 2.0, atol=1e-5)  # the plane z = 2 in the world
+    everything = np.ones_like(res.masks)
+    assert len(outputs.static_map(res.sequence, res.poses, everything)[0]) == 0
+
+
+def test_write_results_writes_every_file(tmp_path):
+    import json
+
+    m = outputs.write_results(tmp_path / "o", _toy_result(), bank=None, overlay_every=2)
+    o = tmp_path / "o"
+    for name in ("trajectory.txt", "trajectory_prior.txt", "static_map.ply", "recall.json", "metrics.json",
+                 "trajectory.png", "topdown_map.png"):
+        assert (o / name).is_file(), name
+    assert len(list((o / "masks").glob("*.png"))) == 4 and len(list((o / "overlays").glob("*.png"))) == 2
+    assert m["refined"]["ate"] < 1e-6 < m["prior"]["ate"] and m["mask"]["iou"] == 1.0
+    assert json.loads((o / "recall.json").read_text())["windows"][0]["created_map"]
+    outputs.write_results(tmp_path / "n", _toy_result(with_gt=False), pictures=False)
+    assert not (tmp_path / "n" / "metrics.json").exists() and (tmp_path / "n" / "trajectory.txt").exists()

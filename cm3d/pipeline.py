@@ -1,0 +1,791 @@
+"""The CogniMap3D pipeline as one pure step function (paper, Fig. 2).
+
+Data flow: ``prepare`` (host: OpenCV flow, keypoint matches and features, resampling into fixed-shape
+arrays) -> ``step`` (jit, ``lax.scan`` over frames) -> :func:`collect` (host: per-frame results)
+-> :mod:`cm3d.outputs` writers. Per frame ``step`` runs, in the paper's order:
+
+1. **motion cues** (:func:`cm3d.motion.motion_cues` on the pair (t, t+1); the last frame pairs
+   with t-1): the dynamic mask, its complement is the static scene;
+2. **static landmarks**: every ``track.keyframe_every`` window slots the most confident static
+   pixel of each cell is seeded and lifted with the prior depth; live landmarks are followed by
+   the flow into the current frame (:mod:`cm3d.trajectory`'s landmark rules, one frame at a time);
+3. every ``keyframe_interval`` frames (and at the sequence end), inside one ``lax.cond``:
+   **recall / verify / update** the memory bank with the window's static cloud, keyframe
+   descriptors and 3D keypoints (:func:`cm3d.memory.remember`), associate the landmarks with the
+   recalled map (``τ = max(τ_min, d_scene · α)``: memory landmarks, projection covariance scaled
+   by ``α_mem``), and the **factor graph** over the window (:func:`cm3d.trajectory.refine_trajectory`).
+
+Windows: window ``k`` holds ``keyframe_interval + 1`` pose slots; slot 0 is the *anchor*, the last
+frame of the previous window with its refined pose (held by the graph's tight prior on pose 0),
+so consecutive windows chain without a gap. Priors of later frames are carried into the refined
+frame by the anchor: ``T_init(t) = T_ref(anchor) T_prior(anchor)^-1 T_prior(t)``.
+
+Resolution: cues, landmarks, descriptors and the memory cloud run at ``1 / stride`` of the input
+resolution (default 2: 192x256 for 384x512 input, 4x less work for the same mask IoU); intrinsics
+are scaled to match, so poses and landmarks are unchanged and reprojection noise is ``σ / stride``.
+Masks are upsampled back to the input resolution by :func:`collect`.
+
+Everything in the step has fixed shapes (capacities and validity masks); shape-affecting options
+are fields of the frozen :class:`PipelineConfig`, passed as a static argument, so a sequence of a
+given (padded) length and image size compiles once and a second one reuses the program. Sequences
+are padded to a multiple of ``keyframe_interval`` (invalid frames leave the state unchanged).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from cm3d import memory, trajectory
+from cm3d.motion import FramePrior, MotionConfig, motion_cues
+from cm3d.ops import descriptors, se3
+from cm3d.ops.flow import FlowConfig
+from cm3d.ops.gmm import GMMConfig
+from cm3d.ops.keypoints import KeypointConfig, Matches
+from cm3d.solvers import factors, lm
+
+# ----------------------------------------------------------------------------------------------
+# Configuration
+
+
+@dataclasses.dataclass(frozen=True)
+class PipelineConfig:
+    """All options of the pipeline (hashable, a static argument of the compiled step).
+
+    keyframe_interval: frames per memory / factor-graph batch (paper: 20); stride: cues, landmarks
+    and memory run at 1/stride resolution; motion: the motion-cue options (GMM with 10 EM
+    iterations: the flow cue only feeds the ``union`` / ``intersection`` candidate modes);
+    track: landmark cells and tracks (in reduced-resolution pixels); assoc: the memory association
+    threshold; refine: the factor graph (pixel noise in reduced-resolution pixels); memory: bank
+    capacities and recall thresholds (used for a new bank; a loaded bank brings its own);
+    use_memory: recall / verify / update at all; keyframe_threshold: descriptor distance between
+    memory keyframes; feature_capacity: 3D keypoints per frame offered to the memory;
+    flow / keypoints: host-side OpenCV front end; seed: the RANSAC key.
+
+    The solver's ``batching="native"``: under ``vmap`` (sweeps over sequences) the LM's sequential
+    ``custom_vmap`` rule cannot sit inside the step's ``scan`` + ``cond`` (JAX 0.10 fails with an
+    internal assertion), so the batch runs as one native while-loop.
+    """
+
+    keyframe_interval: int = 20
+    stride: int = 2
+    motion: MotionConfig = MotionConfig(gmm=GMMConfig(num_components=3, max_iters=10, tol=1e-3))
+    track: trajectory.TrackConfig = trajectory.TrackConfig(cell=16, keyframe_every=4, track_length=8,
+                                                           border=2, min_track=3)
+    assoc: trajectory.AssociationConfig = trajectory.AssociationConfig()
+    refine: trajectory.RefineConfig = trajectory.RefineConfig(
+        graph=factors.GraphConfig(sigma_proj=0.5),
+        solver=lm.LMOptions(backward="none", max_iterations=20, max_linear_solves=40, batching="native"),
+        outliers=factors.OutlierConfig(tau_min_px=1.0))
+    memory: memory.MemoryConfig = memory.MemoryConfig(max_maps=16, max_points=4096, max_keyframes=16)
+    use_memory: bool = True
+    keyframe_threshold: float = 0.25
+    feature_capacity: int = 128
+    flow: FlowConfig = FlowConfig()
+    keypoints: KeypointConfig = KeypointConfig(max_matches=256)
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.keyframe_interval < 2:
+            raise ValueError(f"PipelineConfig.keyframe_interval: must be >= 2, got {self.keyframe_interval}")
+        if self.stride < 1:
+            raise ValueError(f"PipelineConfig.stride: must be >= 1, got {self.stride}")
+        if self.feature_capacity < 1:
+            raise ValueError("PipelineConfig.feature_capacity: must be >= 1")
+
+    @property
+    def window(self) -> int:
+        """Pose slots per window: the anchor plus ``keyframe_interval`` frames."""
+        return self.keyframe_interval + 1
+
+    @property
+    def seed_blocks(self) -> int:
+        """Landmark seeding slots per window (0, κ, 2κ, ... below ``keyframe_interval``)."""
+        return -(-self.keyframe_interval // self.track.keyframe_every)
+
+
+def small_config(**changes) -> PipelineConfig:
+    """A config for tiny images (tests, ``--quick``): small cells, memory and capacities."""
+    base = PipelineConfig(
+        keyframe_interval=4, stride=1,
+        track=trajectory.TrackConfig(cell=8, keyframe_every=2, track_length=4, border=2, min_track=2),
+        memory=memory.MemoryConfig(max_maps=4, max_points=256, max_keyframes=4, max_keypoints=64,
+                                   icp_points=64, ransac_hypotheses=64, min_inliers=20, min_keypoint_inliers=5),
+        feature_capacity=32, keypoints=KeypointConfig(max_matches=64))
+    return dataclasses.replace(base, **changes)
+
+
+def config_for(height: int, width: int, **changes) -> PipelineConfig:
+    """The default config for an image size: :func:`small_config` below 192 px on the short side
+    (landmark cells would not fit at half resolution), :class:`PipelineConfig` otherwise."""
+    if min(height, width) < 192:
+        return small_config(**changes)
+    return dataclasses.replace(PipelineConfig(), **changes)
+
+
+# ----------------------------------------------------------------------------------------------
+# Inputs (host side)
+
+
+@struct.dataclass
+class Features:
+    """Detected keypoints of a frame for the memory: uv (n, 2) reduced-resolution pixels, desc
+    (n, D) unit descriptors, valid (n,)."""
+
+    uv: Any
+    desc: Any
+    valid: Any
+
+
+@struct.dataclass
+class Inputs:
+    """Per-frame inputs, with a leading frame axis ``S`` for a sequence (everything at reduced
+    resolution ``h x w``): frame and partner priors (partner = t+1, t-1 for the last frame), flow
+    (h, w, 2) and keypoint matches frame -> partner, memory features, valid (padding frames are
+    False), last (the sequence's last real frame), index (frame number)."""
+
+    frame: FramePrior
+    partner: FramePrior
+    flow: Any
+    matches: Matches
+    features: Features
+    valid: Any
+    last: Any
+    index: Any
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.valid.shape[0])
+
+
+def _shrink(img: np.ndarray, s: int) -> np.ndarray:
+    """Every s-th pixel (keeps pixel centres aligned with ``K / s``)."""
+    return img[:, ::s, ::s] if s > 1 else img
+
+
+def scale_intrinsics(K: np.ndarray, s: int) -> np.ndarray:
+    """Intrinsics of the every-``s``-th-pixel grid: pixel (u, v) there is (s u, s v) in full."""
+    K = np.array(K, np.float64, copy=True)
+    K[..., :2, :] /= s
+    return K
+
+
+def padded_length(num_frames: int, cfg: PipelineConfig) -> int:
+    """Frames after padding to a whole number of windows (one compiled program per size)."""
+    n = cfg.keyframe_interval
+    return max(n, -(-num_frames // n) * n)
+
+
+def prepare(sequence, cfg: PipelineConfig = PipelineConfig(), flow=None, progress=None) -> Inputs:
+    """Host-side work for a :class:`cm3d.data.Sequence`: OpenCV flow and keypoint matches between
+    each frame and its partner, per-frame keypoint features for the memory, resampling to 1/stride,
+    padding to :func:`padded_length`. ``flow``: optional precomputed forward flow (S-1, H, W, 2);
+    ``progress``: optional callable ``(done, total)`` after each frame. Returns numpy :class:`Inputs`."""
+    from cm3d.ops import flow as oflow
+    from cm3d.ops import keypoints as okp
+
+    S, H, W = sequence.depth.shape
+    if S < 2:
+        raise ValueError(f"sequence: needs at least 2 frames, got {S}")
+    s = cfg.stride
+    if H // s < 2 * cfg.track.cell or W // s < 2 * cfg.track.cell:
+        raise ValueError(f"sequence: images of {H}x{W} are too small for landmark cells of "
+                         f"{cfg.track.cell * s} px")
+    images = np.asarray(sequence.images)
+    partner = np.concatenate([np.arange(1, S), [S - 2]])
+    flows = np.zeros((S, H, W, 2), np.float32)
+    uv0 = np.zeros((S, cfg.keypoints.max_matches, 2), np.float32)
+    uv1 = np.zeros_like(uv0)
+    mvalid = np.zeros((S, cfg.keypoints.max_matches), bool)
+    for t in range(S):
+        p = partner[t]
+        if flow is not None and p == t + 1:
+            flows[t] = flow[t]
+        else:
+            flows[t] = oflow.compute_flow(images[t], images[p], cfg.flow)
+        m = okp.match_keypoints(images[t], images[p], cfg.keypoints)
+        uv0[t], uv1[t], mvalid[t] = m.uv0, m.uv1, m.valid
+        if progress is not None:
+            progress(t + 1, S)
+    if hasattr(okp, "detect_sequence"):
+        feats = okp.detect_sequence(images, None, cfg.feature_capacity, cfg.keypoints)
+        fuv, fdesc, fvalid = feats.uv / s, feats.desc, feats.valid
+    else:  # no feature detector: the memory recalls by descriptors and cloud only
+        fuv = np.zeros((S, cfg.feature_capacity, 2), np.float32)
+        fdesc = np.zeros((S, cfg.feature_capacity, cfg.memory.keypoint_dim), np.float32)
+        fvalid = np.zeros((S, cfg.feature_capacity), bool)
+
+    K = scale_intrinsics(sequence.intrinsic, s).astype(np.float32)
+    img_s = _shrink(images, s)
+    depth = _shrink(np.asarray(sequence.depth, np.float32), s)
+    conf = _shrink(np.asarray(sequence.depth_conf, np.float32), s)
+    c2w = np.asarray(sequence.cam_to_world, np.float32)
+    frame = FramePrior(image=img_s, depth=depth, depth_conf=conf, intrinsic=K, cam_to_world=c2w)
+    part = FramePrior(image=img_s[partner], depth=depth[partner], depth_conf=conf[partner],
+                      intrinsic=K[partner], cam_to_world=c2w[partner])
+    inputs = Inputs(frame=frame, partner=part, flow=_shrink(flows, s) / s,
+                    matches=Matches(uv0 / s, uv1 / s, mvalid),
+                    features=Features(np.asarray(fuv, np.float32), np.asarray(fdesc, np.float32), fvalid),
+                    valid=np.ones(S, bool), last=np.arange(S) == S - 1, index=np.arange(S, dtype=np.int32))
+    return pad_inputs(inputs, padded_length(S, cfg))
+
+
+def pad_inputs(inputs: Inputs, length: int) -> Inputs:
+    """Pad every per-frame array to ``length`` frames by repeating the last one (marked invalid)."""
+    S = inputs.num_frames
+    if length < S:
+        raise ValueError(f"pad_inputs: length {length} < {S} frames")
+    idx = np.minimum(np.arange(length), S - 1)
+    out = jax.tree.map(lambda a: np.asarray(a)[idx], inputs)
+    keep = np.arange(length) < S
+    return out.replace(valid=out.valid & keep, last=out.last & keep)
+
+
+# ----------------------------------------------------------------------------------------------
+# State
+
+
+@struct.dataclass
+class Window:
+    """Buffers of the current window (``W = keyframe_interval + 1`` slots, reduced resolution)."""
+
+    poses: Any  # (W, 4, 4) initial poses (priors carried into the refined frame)
+    intrinsic: Any  # (W, 3, 3)
+    depth: Any  # (W, h, w)
+    conf: Any  # (W, h, w)
+    image: Any  # (W, h, w, 3) uint8
+    static: Any  # (W, h, w) bool
+    desc: Any  # (W, D2) image descriptors of the static pixels
+    feat_uv: Any  # (W, n, 2)
+    feat_desc: Any  # (W, n, Dk)
+    feat_valid: Any  # (W, n)
+    index: Any  # (W,) frame numbers
+    valid: Any  # (W,) filled slots
+
+
+@struct.dataclass
+class Landmarks:
+    """Landmark tracks of the window: ``L = seed_blocks x cells``, ``T = track_length``.
+
+    uv (L, 2) last tracked pixel; alive (L,); seed (L,) seeding slot; obs_uv (L, T, 2) and
+    obs_valid (L, T) observations at slots ``seed + j``; points (L, 3) lifted at seeding."""
+
+    uv: Any
+    alive: Any
+    seed: Any
+    obs_uv: Any
+    obs_valid: Any
+    points: Any
+
+
+@struct.dataclass
+class MapState:
+    """Everything the pipeline remembers: the memory bank (persists across sequences), the PRNG key,
+    the current window (map buffers and pose window), the landmark tracks, the previous flow, the
+    anchor (refined and prior pose of slot 0), the slot of the next frame and frames seen."""
+
+    bank: memory.MemoryBank
+    key: Any
+    window: Window
+    landmarks: Landmarks
+    prev_flow: Any
+    anchor_pose: Any
+    anchor_prior: Any
+    recalled: Any
+    recalled_transform: Any
+    slot: Any
+    frames: Any
+
+
+def _zeros_window(cfg: PipelineConfig, h: int, w: int, n: int, dk: int) -> Window:
+    W = cfg.window
+    eye = jnp.broadcast_to(jnp.eye(4, dtype=jnp.float32), (W, 4, 4))
+    return Window(poses=eye, intrinsic=jnp.broadcast_to(jnp.eye(3, dtype=jnp.float32), (W, 3, 3)),
+                  depth=jnp.zeros((W, h, w), jnp.float32), conf=jnp.zeros((W, h, w), jnp.float32),
+                  image=jnp.zeros((W, h, w, 3), jnp.uint8), static=jnp.zeros((W, h, w), bool),
+                  desc=jnp.zeros((W, descriptors.IMAGE_DIM), jnp.float32),
+                  feat_uv=jnp.zeros((W, n, 2), jnp.float32), feat_desc=jnp.zeros((W, n, dk), jnp.float32),
+                  feat_valid=jnp.zeros((W, n), bool), index=jnp.zeros(W, jnp.int32), valid=jnp.zeros(W, bool))
+
+
+def _zeros_landmarks(cfg: PipelineConfig, h: int, w: int) -> Landmarks:
+    c = cfg.track.cell
+    L = cfg.seed_blocks * (h // c) * (w // c)
+    T = cfg.track.track_length
+    return Landmarks(uv=jnp.zeros((L, 2), jnp.float32), alive=jnp.zeros(L, bool),
+                     seed=jnp.repeat(jnp.arange(cfg.seed_blocks, dtype=jnp.int32) * cfg.track.keyframe_every,
+                                     (h // c) * (w // c)),
+                     obs_uv=jnp.zeros((L, T, 2), jnp.float32), obs_valid=jnp.zeros((L, T), bool),
+                     points=jnp.zeros((L, 3), jnp.float32))
+
+
+def init_state(inputs: Inputs, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBank | None = None,
+               memory_cfg: memory.MemoryConfig | None = None) -> MapState:
+    """A fresh state for sequences shaped like ``inputs`` (a new or the given memory bank)."""
+    h, w = inputs.frame.depth.shape[-2:]
+    n, dk = inputs.features.desc.shape[-2:]
+    if bank is None:
+        bank = memory.empty(memory_cfg or cfg.memory)
+    st = MapState(bank=bank, key=jax.random.PRNGKey(cfg.seed), window=_zeros_window(cfg, h, w, n, dk),
+                  landmarks=_zeros_landmarks(cfg, h, w), prev_flow=jnp.zeros((h, w, 2), jnp.float32),
+                  anchor_pose=jnp.eye(4, dtype=jnp.float32), anchor_prior=jnp.eye(4, dtype=jnp.float32),
+                  recalled=-jnp.ones((), jnp.int32), recalled_transform=jnp.eye(4, dtype=jnp.float32),
+                  slot=jnp.zeros((), jnp.int32), frames=jnp.zeros((), jnp.int32))
+    return st
+
+
+def begin_sequence(state: MapState) -> MapState:
+    """The state at the start of a new sequence: window, tracks and anchor cleared, bank and key kept."""
+    fresh = jax.tree.map(jnp.zeros_like, state)
+    eye = jnp.eye(4, dtype=jnp.float32)
+    win = fresh.window.replace(poses=jnp.broadcast_to(eye, fresh.window.poses.shape),
+                               intrinsic=jnp.broadcast_to(jnp.eye(3, dtype=jnp.float32), fresh.window.intrinsic.shape))
+    return fresh.replace(bank=state.bank, key=state.key, anchor_pose=eye, anchor_prior=eye, window=win,
+                         recalled=-jnp.ones((), jnp.int32), recalled_transform=eye,
+                         landmarks=fresh.landmarks.replace(seed=state.landmarks.seed))
+
+
+# ----------------------------------------------------------------------------------------------
+# Outputs
+
+
+@struct.dataclass
+class RecallReport:
+    """One window's memory decision (zeros when memory is off): candidates (top_k,) map ids
+    (-1 none), votes (top_k,) and scores (top_k,) of the candidates, keypoint inliers (top_k,),
+    accepted, recalled map id (-1 none), inlier_count and inlier_rmse of the verification,
+    fitness, scale, transform (4, 4) query -> map (Sim(3)), map_id written (-1 bank full), created."""
+
+    candidates: Any
+    votes: Any
+    scores: Any
+    keypoint_inliers: Any
+    accepted: Any
+    recalled: Any
+    inlier_count: Any
+    inlier_rmse: Any
+    fitness: Any
+    scale: Any
+    transform: Any
+    map_id: Any
+    created: Any
+
+
+@struct.dataclass
+class WindowResult:
+    """Factor-graph result of one window: poses (W, 4, 4) refined (gated), index (W,) frame numbers,
+    valid (W,), refined (gate passed), gate_stat / gate_threshold, observations and inliers, landmark
+    count, memory landmarks, LM iterations, and the :class:`RecallReport`."""
+
+    poses: Any
+    index: Any
+    valid: Any
+    refined: Any
+    gate_stat: Any
+    gate_threshold: Any
+    observations: Any
+    inliers: Any
+    landmarks: Any
+    memory_landmarks: Any
+    iterations: Any
+    recall: RecallReport
+
+
+@struct.dataclass
+class StepOutputs:
+    """Per-frame outputs: dynamic mask (h, w), initial pose (4, 4), window_end (a window was
+    refined at this frame: ``window`` holds it), valid (a real frame)."""
+
+    mask: Any
+    init_pose: Any
+    window_end: Any
+    window: WindowResult
+    valid: Any
+
+
+# ----------------------------------------------------------------------------------------------
+# Stages of the step
+
+
+def static_mask(inputs_t: Inputs, cfg: PipelineConfig):
+    """Motion cues of frame t (pair with its partner): (dynamic mask (h, w), static (h, w))."""
+    cues = motion_cues(inputs_t.frame, inputs_t.partner, inputs_t.flow, inputs_t.matches, cfg.motion)
+    dyn = cues.robust_mask
+    return dyn, ~dyn & (inputs_t.frame.depth > 0)
+
+
+def advance_landmarks(lm_: Landmarks, flow, static, slot, cfg: PipelineConfig) -> Landmarks:
+    """Follow live landmarks from the previous frame into slot ``slot`` with the previous flow
+    (chained bilinear flow, as :func:`cm3d.trajectory.chain_tracks`); record the observation."""
+    h, w = static.shape
+    T = cfg.track.track_length
+    b = cfg.track.border * 0.5
+    fl = trajectory.bilinear(flow[None], jnp.zeros(lm_.uv.shape[0], jnp.int32), lm_.uv)
+    nxt = lm_.uv + fl
+    inside = (nxt[:, 0] >= b) & (nxt[:, 0] <= w - 1 - b) & (nxt[:, 1] >= b) & (nxt[:, 1] <= h - 1 - b)
+    r = jnp.clip(jnp.round(nxt[:, 1]).astype(jnp.int32), 0, h - 1)
+    c = jnp.clip(jnp.round(nxt[:, 0]).astype(jnp.int32), 0, w - 1)
+    j = slot - lm_.seed
+    good = lm_.alive & inside & static[r, c] & (j >= 1) & (j < T)
+    put = (jnp.arange(T)[None, :] == j[:, None]) & good[:, None]
+    return lm_.replace(uv=jnp.where(good[:, None], nxt, lm_.uv), alive=good,
+                       obs_uv=jnp.where(put[..., None], nxt[:, None, :], lm_.obs_uv),
+                       obs_valid=lm_.obs_valid | put)
+
+
+def seed_landmarks(lm_: Landmarks, slot, depth, conf, static, K, pose, cfg: PipelineConfig) -> Landmarks:
+    """Seed the block of slot ``slot``: the most confident static pixel of each cell, lifted to
+    the world with the prior depth and the slot's initial pose."""
+    uv, ok = trajectory.select_landmark_pixels(depth, conf, static, cfg.track)
+    C = uv.shape[0]
+    h, w = depth.shape
+    r = jnp.clip(jnp.round(uv[:, 1]).astype(jnp.int32), 0, h - 1)
+    c = jnp.clip(jnp.round(uv[:, 0]).astype(jnp.int32), 0, w - 1)
+    d = depth[r, c]
+    ray = jnp.concatenate([uv, jnp.ones_like(uv[:, :1])], -1) @ jnp.linalg.inv(K).T
+    pw = se3.transform_points(pose, ray * d[:, None])
+    ok = ok & (d > 0)
+    start = (slot // cfg.track.keyframe_every) * C
+    T = cfg.track.track_length
+    first = jnp.zeros((C, T, 2), uv.dtype).at[:, 0].set(uv)
+    fvalid = jnp.zeros((C, T), bool).at[:, 0].set(ok)
+    upd = lambda a, v: jax.lax.dynamic_update_slice_in_dim(a, v.astype(a.dtype), start, 0)  # noqa: E731
+    return lm_.replace(uv=upd(lm_.uv, uv), alive=upd(lm_.alive, ok), obs_uv=upd(lm_.obs_uv, first),
+                       obs_valid=upd(lm_.obs_valid, fvalid), points=upd(lm_.points, pw))
+
+
+def landmark_observations(lm_: Landmarks, cfg: PipelineConfig) -> trajectory.Observations:
+    """The window's projection observations (K = L x T), tracks shorter than ``min_track`` dropped."""
+    valid = lm_.obs_valid & (jnp.sum(lm_.obs_valid, -1) >= cfg.track.min_track)[:, None]
+    tracks = trajectory.Tracks(uv=lm_.obs_uv, valid=valid, frame=lm_.seed)
+    return trajectory.track_observations(tracks)
+
+
+def _sim3_inverse_apply(A, points):
+    """Points moved by the inverse of the Sim(3) ``[s R, t]`` (map -> query)."""
+    Ainv = jnp.linalg.inv(A[:3, :3])
+    return (points - A[:3, 3]) @ Ainv.T
+
+
+def recall_verify_update(bank, key, win: Window, mem_cfg: memory.MemoryConfig, cfg: PipelineConfig):
+    """The memory stage of a window: its static cloud, keyframe descriptors and 3D keypoints
+    (posed by ``win.poses``) -> :func:`cm3d.memory.remember`. Returns (bank, :class:`RecallReport`)."""
+    cloud_cfg = dataclasses.replace(mem_cfg, pixel_stride=max(1, mem_cfg.pixel_stride // cfg.stride))
+    static = win.static & win.valid[:, None, None]
+    cloud = memory.sequence_cloud(win.depth, win.conf, win.intrinsic, win.poses, win.image, static, cloud_cfg)
+    idx, kv = memory.select_keyframes(win.desc, win.valid, cfg.keyframe_threshold, mem_cfg.max_keyframes)
+    fvalid = win.feat_valid & win.valid[:, None]
+    kwargs = {}
+    if hasattr(memory, "lift_keypoints"):
+        kwargs["keypoints"] = memory.lift_keypoints(win.feat_uv, win.feat_desc, fvalid, win.depth, win.intrinsic,
+                                                    win.poses, mem_cfg.max_keypoints)
+    entry = memory.build_entry(cloud, win.desc[idx], kv, mem_cfg, **kwargs)
+    bank, rep = memory.remember(bank, entry, mem_cfg, key)
+    ident = getattr(rep, "identification", None)
+    rc = ident.recall if ident is not None else rep.recall
+    ver = ident.verification if ident is not None else None
+    cand = rc.candidates
+    safe = jnp.maximum(cand, 0)
+    top_k = cand.shape[0]
+    zi = jnp.zeros(top_k, jnp.int32)
+    report = RecallReport(
+        candidates=cand.astype(jnp.int32), votes=jnp.where(cand >= 0, rc.votes[safe], 0.0).astype(jnp.float32),
+        scores=jnp.where(cand >= 0, rc.scores[safe], 0.0).astype(jnp.float32),
+        keypoint_inliers=(ident.candidate_inliers.astype(jnp.int32) if ident is not None else zi),
+        accepted=rep.recalled >= 0, recalled=rep.recalled.astype(jnp.int32),
+        inlier_count=(ver.inlier_count if ver is not None else jnp.zeros(())).astype(jnp.int32),
+        inlier_rmse=(ver.inlier_rmse if ver is not None else jnp.zeros(())).astype(jnp.float32),
+        fitness=(ver.fitness if ver is not None else jnp.zeros(())).astype(jnp.float32),
+        scale=(ver.scale if ver is not None else jnp.ones(())).astype(jnp.float32),
+        transform=rep.transform.astype(jnp.float32), map_id=rep.map_id.astype(jnp.int32),
+        created=jnp.asarray(rep.created, bool))
+    return bank, report
+
+
+def memory_landmarks(bank: memory.MemoryBank, map_id, transform):
+    """Points (P, 3) of map ``map_id`` moved into the sequence's frame (inverse of the Sim(3)
+    ``transform`` sequence -> map) and their validity (P,) (none when ``map_id < 0``)."""
+    m = jnp.maximum(map_id, 0)
+    pts = _sim3_inverse_apply(transform.astype(jnp.float32), bank.points[m])
+    return pts, bank.point_valid[m] & (map_id >= 0)
+
+
+def _empty_report(top_k: int) -> RecallReport:
+    zi = jnp.zeros(top_k, jnp.int32)
+    return RecallReport(candidates=zi - 1, votes=jnp.zeros(top_k), scores=jnp.zeros(top_k), keypoint_inliers=zi,
+                        accepted=jnp.zeros((), bool), recalled=-jnp.ones((), jnp.int32),
+                        inlier_count=jnp.zeros((), jnp.int32), inlier_rmse=jnp.zeros(()), fitness=jnp.zeros(()),
+                        scale=jnp.ones(()), transform=jnp.eye(4, dtype=jnp.float32),
+                        map_id=-jnp.ones((), jnp.int32), created=jnp.zeros((), bool))
+
+
+def factor_graph(win: Window, lm_: Landmarks, mem_points, mem_valid, cfg: PipelineConfig):
+    """Memory association (``τ = max(τ_min, d_scene α)``) and the windowed factor graph."""
+    obs = landmark_observations(lm_, cfg)
+    first = obs.valid.reshape(lm_.obs_valid.shape)[:, 0]
+    d_scene = trajectory.scene_scale(win.depth, win.static & win.valid[:, None, None])
+    points, is_mem = trajectory.add_memory_landmarks(lm_.points, first, mem_points, mem_valid, d_scene, cfg.assoc)
+    T = cfg.track.track_length
+    obs = obs.replace(memory=jnp.repeat(is_mem, T))
+    ref = trajectory.refine_trajectory(win.poses, win.intrinsic, points, obs, cfg.refine, pose_valid=win.valid)
+    poses = restore_depth_scale(ref.poses, win.poses, ref.points, points, lm_.seed, first & ~is_mem)
+    poses = jnp.where(win.valid[:, None, None], poses, win.poses)
+    return ref, poses, obs, jnp.sum(is_mem)
+
+
+def restore_depth_scale(poses, init_poses, points, init_points, seed, valid):
+    """Fix the window's scale gauge to the prior depth's scale.
+
+    Reprojection and relative-motion factors leave the scale of a window nearly free (a short
+    window under rotation can shrink by 3x at almost no cost). The prior depth fixes it: the median
+    ratio ``r`` of each landmark's distance to its seeding camera, refined over initial, measures
+    how far the graph moved the scale, and camera centres are rescaled about the anchor (slot 0,
+    held by the prior) by ``1 / r``. poses, init_poses (W, 4, 4); points, init_points (L, 3);
+    seed (L,) slot; valid (L,)."""
+    d_ref = jnp.linalg.norm(points - poses[seed, :3, 3], axis=-1)
+    d_init = jnp.linalg.norm(init_points - init_poses[seed, :3, 3], axis=-1)
+    ok = valid & (d_init > 0) & jnp.isfinite(d_ref)
+    r = factors.masked_median(d_ref / jnp.where(ok, d_init, 1.0), ok)
+    r = jnp.where((jnp.sum(ok) >= 3) & jnp.isfinite(r) & (r > 0), jnp.clip(r, 0.2, 5.0), 1.0)
+    c0 = poses[0, :3, 3]
+    return poses.at[:, :3, 3].set(c0 + (poses[:, :3, 3] - c0) / r)
+
+
+def window_end(bank, key, recalled, recalled_T, win: Window, lm_: Landmarks, mem_cfg: memory.MemoryConfig,
+               cfg: PipelineConfig):
+    """The window that ends at this frame: the factor graph (memory landmarks from the map this
+    sequence last recalled, ``recalled`` with transform ``recalled_T``), then recall / verify /
+    update with the refined poses. Returns (bank, WindowResult, recalled, recalled_T) where the
+    last two are updated when this window's recall was accepted.
+
+    Why refine before remembering: the memory stores what the graph made consistent, so memory
+    landmarks (weighted up by ``α_mem``) never pull a later window toward prior-noise geometry;
+    a window's verified recall feeds the memory landmarks of the windows after it.
+    """
+    if cfg.use_memory:
+        mem_pts, mem_valid = memory_landmarks(bank, recalled, recalled_T)
+    else:
+        mem_pts, mem_valid = jnp.zeros((1, 3), jnp.float32), jnp.zeros(1, bool)
+    ref, poses, obs, n_mem = factor_graph(win, lm_, mem_pts, mem_valid, cfg)
+    if cfg.use_memory:
+        bank, report = recall_verify_update(bank, key, win.replace(poses=poses.astype(jnp.float32)), mem_cfg, cfg)
+        recalled = jnp.where(report.accepted, report.recalled, recalled)
+        recalled_T = jnp.where(report.accepted, report.transform, recalled_T)
+    else:
+        report = _empty_report(mem_cfg.top_k)
+    res = WindowResult(poses=poses.astype(jnp.float32), index=win.index, valid=win.valid, refined=ref.refined,
+                       gate_stat=ref.gate_stat.astype(jnp.float32),
+                       gate_threshold=ref.gate_threshold.astype(jnp.float32),
+                       observations=jnp.sum(obs.valid).astype(jnp.int32), inliers=jnp.sum(ref.inlier).astype(jnp.int32),
+                       landmarks=jnp.sum(obs.valid.reshape(lm_.obs_valid.shape)[:, 0]).astype(jnp.int32),
+                       memory_landmarks=n_mem.astype(jnp.int32), iterations=ref.result.iterations.astype(jnp.int32),
+                       recall=report)
+    return bank, res, recalled, recalled_T
+
+
+def _empty_result(cfg: PipelineConfig, mem_cfg: memory.MemoryConfig) -> WindowResult:
+    W = cfg.window
+    z = jnp.zeros((), jnp.int32)
+    return WindowResult(poses=jnp.broadcast_to(jnp.eye(4, dtype=jnp.float32), (W, 4, 4)), index=jnp.zeros(W, jnp.int32),
+                        valid=jnp.zeros(W, bool), refined=jnp.zeros((), bool), gate_stat=jnp.zeros(()),
+                        gate_threshold=jnp.zeros(()), observations=z, inliers=z, landmarks=z, memory_landmarks=z,
+                        iterations=z, recall=_empty_report(mem_cfg.top_k))
+
+
+def _bank_config(bank: memory.MemoryBank, cfg: PipelineConfig) -> memory.MemoryConfig:
+    """The memory config matching the bank's capacities (a loaded bank may differ from cfg.memory)."""
+    M, P, _ = bank.points.shape
+    K = bank.kf_desc.shape[1]
+    mc = cfg.memory
+    if (M, P, K) != (mc.max_maps, mc.max_points, mc.max_keyframes):
+        mc = dataclasses.replace(mc, max_maps=M, max_points=P, max_keyframes=K)
+    kp = getattr(bank, "kp_points", None)
+    if kp is not None and kp.shape[1] != mc.max_keypoints:
+        mc = dataclasses.replace(mc, max_keypoints=kp.shape[1])
+    return mc
+
+
+# ----------------------------------------------------------------------------------------------
+# The step
+
+
+def _put(a, i, v):
+    return jax.lax.dynamic_update_index_in_dim(a, jnp.asarray(v, a.dtype), i, 0)
+
+
+def step(state: MapState, inputs_t: Inputs, cfg: PipelineConfig = PipelineConfig()):
+    """One frame: motion cues -> static landmarks -> (every ``keyframe_interval`` frames)
+    recall / verify / update -> factor graph. Pure; ``cfg`` static. Returns (state, StepOutputs)."""
+    mem_cfg = _bank_config(state.bank, cfg)
+    f = inputs_t.frame
+    first = state.frames == 0
+    anchor_prior = jnp.where(first, f.cam_to_world, state.anchor_prior)
+    anchor_pose = jnp.where(first, f.cam_to_world, state.anchor_pose)
+    init_pose = anchor_pose @ se3.inverse(anchor_prior) @ f.cam_to_world
+    s = state.slot
+
+    # 1. motion cues
+    dynamic, static = static_mask(inputs_t, cfg)
+
+    # 2. static landmarks: follow the live ones into this frame, buffer the frame
+    lms = jax.lax.cond(s > 0, lambda m: advance_landmarks(m, state.prev_flow, static, s, cfg), lambda m: m,
+                       state.landmarks)
+    desc = descriptors.image_descriptor(f.image, static, factor=max(1, 4 // cfg.stride))
+    fuv = inputs_t.features.uv
+    h, w = static.shape
+    fr = jnp.clip(jnp.round(fuv[:, 1]).astype(jnp.int32), 0, h - 1)
+    fc = jnp.clip(jnp.round(fuv[:, 0]).astype(jnp.int32), 0, w - 1)
+    win = state.window
+    win = win.replace(poses=_put(win.poses, s, init_pose), intrinsic=_put(win.intrinsic, s, f.intrinsic),
+                      depth=_put(win.depth, s, f.depth), conf=_put(win.conf, s, f.depth_conf),
+                      image=_put(win.image, s, f.image), static=_put(win.static, s, static),
+                      desc=_put(win.desc, s, desc),
+                      feat_uv=_put(win.feat_uv, s, fuv), feat_desc=_put(win.feat_desc, s, inputs_t.features.desc),
+                      feat_valid=_put(win.feat_valid, s, inputs_t.features.valid & static[fr, fc]),
+                      index=_put(win.index, s, inputs_t.index), valid=_put(win.valid, s, True))
+
+    # 3. every keyframe_interval frames: recall / verify / update and the factor graph
+    end = (s == cfg.keyframe_interval) | inputs_t.last
+    key, sub = jax.random.split(state.key)
+
+    def on_end(args):
+        bank, win, lms, rec, rec_T = args
+        bank, res, rec, rec_T = window_end(bank, sub, rec, rec_T, win, lms, mem_cfg, cfg)
+        pose_t = res.poses[s]
+        # the new window: this frame becomes the anchor (slot 0)
+        nw = jax.tree.map(lambda a: _put(jnp.zeros_like(a), 0, a[s]), win)
+        nw = nw.replace(poses=jnp.broadcast_to(pose_t, win.poses.shape),  # free slots: harmless copies
+                        intrinsic=jnp.broadcast_to(win.intrinsic[s], win.intrinsic.shape))
+        fresh = lms.replace(alive=jnp.zeros_like(lms.alive), obs_valid=jnp.zeros_like(lms.obs_valid))
+        return bank, nw, fresh, res, pose_t, f.cam_to_world, rec, rec_T
+
+    def on_continue(args):
+        bank, win, lms, rec, rec_T = args
+        return bank, win, lms, _empty_result(cfg, mem_cfg), anchor_pose, anchor_prior, rec, rec_T
+
+    bank, win, lms, res, anchor_pose, anchor_prior, recalled, recalled_T = jax.lax.cond(
+        end, on_end, on_continue, (state.bank, win, lms, state.recalled, state.recalled_transform))
+    slot = jnp.where(end, 0, s)
+
+    # seed landmarks at the seeding slots (slot 0 of a new window is this frame again)
+    do_seed = (slot % cfg.track.keyframe_every == 0) & (slot < cfg.keyframe_interval)
+    lms = jax.lax.cond(do_seed, lambda m: seed_landmarks(m, slot, f.depth, f.depth_conf, static, f.intrinsic,
+                                                         win.poses[slot], cfg), lambda m: m, lms)
+    new = MapState(bank=bank, key=key, window=win, landmarks=lms, prev_flow=jnp.asarray(inputs_t.flow, jnp.float32),
+                   anchor_pose=anchor_pose, anchor_prior=anchor_prior, recalled=recalled,
+                   recalled_transform=recalled_T, slot=slot + 1, frames=state.frames + 1)
+    ok = inputs_t.valid
+    new = jax.tree.map(lambda a, b: jnp.where(ok, a, b), new, state)
+    out = StepOutputs(mask=dynamic & ok, init_pose=init_pose, window_end=end & ok, window=res, valid=ok)
+    return new, out
+
+
+def _run_sequence(state: MapState, inputs: Inputs, cfg: PipelineConfig):
+    state = begin_sequence(state)
+    return jax.lax.scan(functools.partial(step, cfg=cfg), state, inputs)
+
+
+#: ``run_sequence(state, inputs, cfg)``: the whole sequence in one compiled ``lax.scan`` of :func:`step`
+#: (the window, tracks and anchor are reset first; the memory bank carries over).
+run_sequence = jax.jit(_run_sequence, static_argnames="cfg")
+step_jit = jax.jit(step, static_argnames="cfg")
+
+
+# ----------------------------------------------------------------------------------------------
+# Host side: per-frame results and the one-call API
+
+
+@dataclasses.dataclass
+class SequenceResult:
+    """What the pipeline found in one sequence (numpy, input resolution).
+
+    poses: (S, 4, 4) refined cam_to_world; prior: (S, 4, 4) the input prior; masks: (S, H, W) bool
+    dynamic masks; windows: one dict per window (frames, refinement and memory decision);
+    sequence: the input :class:`cm3d.data.Sequence`."""
+
+    poses: np.ndarray
+    prior: np.ndarray
+    masks: np.ndarray
+    windows: list
+    sequence: Any
+
+
+def _upsample(mask: np.ndarray, s: int, H: int, W: int) -> np.ndarray:
+    if s == 1:
+        return mask[:, :H, :W]
+    return np.repeat(np.repeat(mask, s, axis=1), s, axis=2)[:, :H, :W]
+
+
+def collect(outputs: StepOutputs, sequence, cfg: PipelineConfig = PipelineConfig()) -> SequenceResult:
+    """Per-frame results from the stacked step outputs (host): the refined pose of every frame
+    (from the window that refined it), full-resolution masks and one record per window."""
+    out = jax.tree.map(np.asarray, outputs)
+    S, H, W = sequence.depth.shape
+    poses = np.array(out.init_pose[:S], np.float64)
+    windows = []
+    for t in np.flatnonzero(out.window_end):
+        w = jax.tree.map(lambda a: a[t], out.window)
+        ok = w.valid.astype(bool)
+        poses[w.index[ok]] = w.poses[ok]
+        r = w.recall
+        cand = [int(c) for c in r.candidates]
+        windows.append({
+            "frames": [int(w.index[ok].min()), int(w.index[ok].max())], "memory": bool(cfg.use_memory),
+            "candidates": [c for c in cand if c >= 0],
+            "votes": [float(v) for c, v in zip(cand, r.votes) if c >= 0],
+            "scores": [float(v) for c, v in zip(cand, r.scores) if c >= 0],
+            "keypoint_inliers": [int(v) for c, v in zip(cand, r.keypoint_inliers) if c >= 0],
+            "accepted": bool(r.accepted), "recalled_map": int(r.recalled),
+            "inlier_count": int(r.inlier_count), "rmse": float(r.inlier_rmse), "fitness": float(r.fitness),
+            "scale": float(r.scale), "transform": np.asarray(r.transform, np.float64).round(6).tolist(),
+            "map_id": int(r.map_id), "created_map": bool(r.created),
+            "refined": bool(w.refined), "gate_stat": float(w.gate_stat), "gate_threshold": float(w.gate_threshold),
+            "landmarks": int(w.landmarks), "memory_landmarks": int(w.memory_landmarks),
+            "observations": int(w.observations), "inliers": int(w.inliers), "lm_iterations": int(w.iterations),
+        })
+    masks = _upsample(out.mask[:S].astype(bool), cfg.stride, H, W)
+    return SequenceResult(poses=poses, prior=np.asarray(sequence.cam_to_world, np.float64), masks=masks,
+                          windows=windows, sequence=sequence)
+
+
+def _device(inputs: Inputs) -> Inputs:
+    return jax.tree.map(jnp.asarray, inputs)
+
+
+def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBank | None = None,
+        progress=None) -> tuple[memory.MemoryBank, list[SequenceResult]]:
+    """The whole pipeline on one or several visits (:class:`cm3d.data.Sequence` or paths any
+    loader reads), threading one state: the memory bank persists across visits.
+
+    ``bank``: a memory bank to start from (e.g. :func:`cm3d.memory.load`); ``progress``: optional
+    callable ``(stage, done, total)``. Returns (the updated bank, one :class:`SequenceResult` per visit).
+    """
+    from cm3d.data.loaders import load_input
+
+    if not isinstance(sequences, (list, tuple)):
+        sequences = [sequences]
+    state = None
+    results = []
+    for i, seq in enumerate(sequences):
+        if not hasattr(seq, "depth"):
+            seq = load_input(seq)
+        cb = None if progress is None else (lambda d, n, i=i: progress(f"visit {i}: flow", d, n))
+        inputs = _device(prepare(seq, cfg, progress=cb))
+        if state is None:
+            state = init_state(inputs, cfg, bank)
+        elif state.window.depth.shape[1:] != inputs.frame.depth.shape[1:]:
+            state = init_state(inputs, cfg, state.bank)  # another image size: new buffers, same bank
+        if progress is not None:
+            progress(f"visit {i}: back end", 0, 1)
+        state, out = run_sequence(state, inputs, cfg)
+        jax.block_until_ready(out)
+        if progress is not None:
+            progress(f"visit {i}: back end", 1, 1)
+        results.append(collect(out, seq, cfg))
+    return (state.bank if state is not None else bank), results

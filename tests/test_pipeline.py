@@ -1,0 +1,127 @@
+"""The step function: scan == a Python loop of step, vmap == separate runs, no recompilation for a
+second sequence of the same shapes, and the one-call API threading one memory across visits."""
+
+import numpy as np
+import pytest
+
+import jax
+import jax.numpy as jnp
+
+from cm3d import pipeline
+from cm3d.data import synthetic
+
+WORLD = synthetic.WorldConfig(height=48, width=64, supersample=1)
+CFG = pipeline.small_config(use_memory=False)
+
+
+@pytest.fixture(scope="module")
+def visits():
+    return [synthetic.generate(0, v, 8, "moderate", WORLD) for v in range(2)]
+
+
+@pytest.fixture(scope="module")
+def prepared(visits):
+    return [jax.tree.map(jnp.asarray, pipeline.prepare(s, CFG)) for s in visits]
+
+
+@pytest.fixture(scope="module")
+def scanned(prepared):
+    st0 = pipeline.init_state(prepared[0], CFG)
+    before = pipeline.run_sequence._cache_size()
+    st1, out0 = pipeline.run_sequence(st0, prepared[0], CFG)
+    after_first = pipeline.run_sequence._cache_size()
+    st2, out1 = pipeline.run_sequence(st1, prepared[1], CFG)
+    return {"state0": st0, "outs": [out0, out1], "states": [st1, st2],
+            "compiles": (after_first - before, pipeline.run_sequence._cache_size() - after_first)}
+
+
+def test_prepare_shapes_and_padding(visits, prepared):
+    x = prepared[0]
+    assert x.num_frames == pipeline.padded_length(8, CFG) == 8
+    assert x.frame.depth.shape == (8, 48, 64) and x.flow.shape == (8, 48, 64, 2)
+    assert bool(x.last[7]) and int(x.valid.sum()) == 8
+    padded = pipeline.pad_inputs(jax.tree.map(np.asarray, x), 12)
+    assert padded.num_frames == 12 and int(padded.valid.sum()) == 8 and int(padded.last.sum()) == 1
+    with pytest.raises(ValueError, match="too small"):
+        pipeline.prepare(visits[0], pipeline.PipelineConfig())
+
+
+def test_second_sequence_does_not_recompile(scanned):
+    first, second = scanned["compiles"]
+    assert first <= 1 and second == 0
+
+
+def test_scan_equals_python_loop_of_step(prepared, scanned):
+    state = pipeline.begin_sequence(scanned["state0"])
+    x = prepared[0]
+    masks, ends, poses = [], [], []
+    for t in range(x.num_frames):
+        state, out = pipeline.step_jit(state, jax.tree.map(lambda a, t=t: a[t], x), CFG)
+        masks.append(out.mask)
+        ends.append(out.window_end)
+        poses.append(out.window.poses)
+    ref = scanned["outs"][0]
+    np.testing.assert_array_equal(np.stack(masks), ref.mask)
+    np.testing.assert_array_equal(np.stack(ends), ref.window_end)
+    np.testing.assert_allclose(np.stack(poses), ref.window.poses, atol=1e-4)
+    np.testing.assert_allclose(state.anchor_pose, scanned["states"][0].anchor_pose, atol=1e-4)
+
+
+def test_windows_refine_every_frame(visits, scanned):
+    out = scanned["outs"][0]
+    res = pipeline.collect(out, visits[0], CFG)
+    assert [w["frames"] for w in res.windows] == [[0, 4], [4, 7]]
+    assert res.poses.shape == (8, 4, 4) and np.all(np.isfinite(res.poses))
+    assert res.masks.shape == (8, 48, 64) and res.masks.dtype == bool
+    # every frame got a pose from a window; the anchor frame 4 is shared by both windows
+    assert all(w["landmarks"] > 0 and w["observations"] > 0 for w in res.windows)
+    np.testing.assert_allclose(res.poses[0], visits[0].cam_to_world[0], atol=1e-4)
+
+
+def test_vmap_over_two_sequences_equals_separate_runs(prepared, scanned):
+    stack = jax.tree.map(lambda a, b: jnp.stack([a, b]), prepared[0], prepared[1])
+    st0 = scanned["state0"]
+    states = jax.tree.map(lambda a: jnp.stack([a, a]), st0)
+    run = jax.jit(jax.vmap(lambda s, x: pipeline._run_sequence(s, x, CFG)))
+    _, outs = run(states, stack)
+    _, single1 = pipeline.run_sequence(st0, prepared[1], CFG)
+    for i, ref in enumerate([scanned["outs"][0], single1]):
+        np.testing.assert_array_equal(outs.window_end[i], ref.window_end)
+        assert np.mean(np.asarray(outs.mask[i]) == np.asarray(ref.mask)) > 0.999
+        np.testing.assert_array_equal(outs.window.refined[i], ref.window.refined)
+        np.testing.assert_array_equal(outs.window.observations[i], ref.window.observations)
+        # the objective agrees to float32 round-off; poses too, except along directions the tiny
+        # (48x64, 4-frame) windows leave nearly flat, where round-off moves the LM's optimum
+        np.testing.assert_allclose(outs.window.gate_stat[i], ref.window.gate_stat, rtol=1e-3)
+        close = np.isclose(np.asarray(outs.window.poses[i]), np.asarray(ref.window.poses), atol=1e-3)
+        assert close.mean() > 0.95
+
+
+def test_run_api_threads_memory_across_visits(visits):
+    cfg = pipeline.small_config()
+    bank, results = pipeline.run([visits[0], visits[0]], cfg)
+    assert len(results) == 2 and int(bank.map_valid.sum()) >= 1
+    first, again = results
+    assert first.windows[0]["created_map"] and first.windows[0]["map_id"] == 0
+    # the same visit again: recalled from memory, verified, and the map updated (not a new map)
+    w = again.windows[0]
+    assert w["candidates"] and w["candidates"][0] == 0
+    assert w["accepted"] and w["recalled_map"] == 0 and not w["created_map"]
+    assert np.all(np.isfinite(again.poses))
+
+
+def test_restore_depth_scale_undoes_a_shrunk_window():
+    rng = np.random.default_rng(0)
+    init = np.tile(np.eye(4, dtype=np.float32), (5, 1, 1))
+    init[:, :3, 3] = rng.normal(size=(5, 3)) * 0.1
+    init[0, :3, 3] = 0.0
+    pts = rng.normal(size=(20, 3)).astype(np.float32) + [0, 0, 3]
+    seed = np.repeat(np.arange(0, 5, 2, dtype=np.int32), 7)[:20]
+    shrunk = init.copy()
+    shrunk[:, :3, 3] *= 0.4  # the graph's scale gauge moved: cameras and points shrink about slot 0
+    fixed = pipeline.restore_depth_scale(jnp.asarray(shrunk), jnp.asarray(init), jnp.asarray(pts * 0.4),
+                                         jnp.asarray(pts), jnp.asarray(seed), jnp.ones(20, bool))
+    np.testing.assert_allclose(fixed, init, atol=1e-5)
+    same = pipeline.restore_depth_scale(jnp.asarray(init), jnp.asarray(init), jnp.asarray(pts), jnp.asarray(pts),
+                                        jnp.asarray(seed), jnp.zeros(20, bool))
+    np.testing.assert_allclose(same, init, atol=1e-6)
