@@ -21,7 +21,7 @@ demo: setup
 	$(VENV)/bin/cm3d demo
 
 test: setup
-	$(VENV)/bin/python -m pytest
+	$(VENV)/bin/python -m pytest -n auto
 
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis

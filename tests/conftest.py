@@ -1,9 +1,21 @@
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+
+# One persistent XLA compilation cache per test run, shared by the xdist workers and by the
+# scripts the tests start (they inherit the environment): the pipeline, the solvers and the
+# experiments compile the same programs in several processes. Keyed by the run, so every run
+# (and CI, from a clean checkout) starts cold and its timings stay honest.
+_RUN = os.environ.get("PYTEST_XDIST_TESTRUNUID") or str(os.getpid())
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path(tempfile.gettempdir()) / f"cm3d-test-xla-{_RUN}"))
+
+import jax  # noqa: E402  (after the variable: a jax imported earlier by a plugin gets it here)
+
+jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
 
 
 @pytest.fixture(scope="session")

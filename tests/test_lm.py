@@ -192,6 +192,9 @@ def test_bad_options_and_capacity_raise(problem):
         n = np.bincount(lid, minlength=M)
         assert need == int(np.sum(n * (n - 1) // 2))
         small = dataclasses.replace(OPTS, pair_capacity=need - 1)
-        with pytest.raises(Exception, match="pair_capacity"):
-            check = jax.jit(lambda g: lm.structure(g, M, small).pair_target, compiler_options=FAST)
-            jax.block_until_ready(check(graph))
+        st = jax.jit(lambda g: lm.structure(g, M, small), compiler_options=FAST)(graph)
+        assert int(st.pair_count) == need > st.pair_k1.shape[0]  # the overflow is visible
+        res = lm.solve_jit(graph, init, small)  # ... and the solver refuses to step, saying why
+        assert int(res.stop_reason) == lm.PAIR_OVERFLOW and not bool(res.converged)
+        assert "pair_capacity" in lm.STOP_REASONS[lm.PAIR_OVERFLOW]
+        np.testing.assert_allclose(res.params.points, init.points)

@@ -45,7 +45,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -72,7 +71,9 @@ LINEAR_SOLVERS = ("auto", "dense", "pcg")
 BATCHINGS = ("auto", "sequential", "native")
 BACKWARDS = ("implicit", "unrolled", "none")
 STOP_REASONS = ("running", "relative/absolute decrease", "gradient tolerance", "small cost change",
-                "lambda upper bound", "max iterations", "non-finite initial point")
+                "lambda upper bound", "max iterations", "non-finite initial point",
+                "pair capacity too small: raise LMOptions.pair_capacity (schur_pair_count gives the need)")
+PAIR_OVERFLOW = 7  # stop reason: the graph has more landmark observation pairs than the capacity
 
 
 @dataclasses.dataclass(frozen=True)
@@ -202,7 +203,9 @@ def structure(graph: FactorGraph, num_points: int, options: LMOptions = LMOption
               with_pairs: bool = True) -> Structure:
     """Active masks and the landmark observation pairs (jittable, fixed capacity).
 
-    Raises (at run time, inside jit) when the graph has more pairs than ``options.pair_capacity``.
+    When the graph has more pairs than the capacity (``pair_count > pair_k1.shape[0]``) the pairs
+    are incomplete: :func:`solve` then takes no step and reports stop reason :data:`PAIR_OVERFLOW`
+    (a result, not a host callback, so compiled programs stay cacheable and vmappable).
     """
     f = graph.projection
     N = graph.intrinsics.shape[0]
@@ -241,9 +244,6 @@ def structure(graph: FactorGraph, num_points: int, options: LMOptions = LMOption
     k1 = jnp.where(valid, order[sp], 0)
     k2 = jnp.where(valid, order[jnp.clip(partner, 0, K - 1)], 0)
     target = f.pose_idx[k1] * N + f.pose_idx[k2]
-    target = eqx.error_if(target, total > cap,
-                          "LMOptions.pair_capacity too small for this graph's landmark observation "
-                          "pairs: raise it (schur_pair_count(graph, M) gives the exact need)")
     return Structure(obs_active, point_active, pose_active, k1, k2, valid, target, total)
 
 
@@ -730,10 +730,15 @@ def _propose(graph, st, options, s: _State, newton, differentiable):
     return retract(s.x, dp, dl), pred.astype(s.lam.dtype), sys
 
 
+def _overflow(st: Structure):
+    return st.pair_count > st.pair_k1.shape[0]
+
+
 def _body(graph, st, options, s: _State, differentiable: bool) -> _State:
     s = _evaluate(graph, st, options, s, differentiable)
-    lm_running = (s.reason == 0) & (s.solves < options.max_linear_solves) & (s.iterations < options.max_iterations)
-    polish = (~lm_running) & (s.newton < options.newton_steps) & (_grad_scaled(s.lin) > options.grad_tol)
+    ok = ~_overflow(st)  # incomplete Schur pairs: evaluate the initial point, take no step
+    lm_running = ok & (s.reason == 0) & (s.solves < options.max_linear_solves) & (s.iterations < options.max_iterations)
+    polish = ok & (~lm_running) & (s.newton < options.newton_steps) & (_grad_scaled(s.lin) > options.grad_tol)
     propose = lm_running | polish
     if differentiable:
         cand, pred, sys = _propose(graph, st, options, s, polish, differentiable)
@@ -760,11 +765,12 @@ def _start(graph, init: Variables, st, options) -> _State:
                   sys=sys0)
 
 
-def _finish(s: _State, options) -> LMResult:
+def _finish(s: _State, options, st: Structure) -> LMResult:
     idx = jnp.arange(s.history.shape[0])
     hist = jnp.where(idx <= s.iterations, s.history, s.lin.cost)
     reason = jnp.where(_grad_scaled(s.lin) <= options.grad_tol, 2, s.reason)
     reason = jnp.where(reason == 0, 5, reason)
+    reason = jnp.where(_overflow(st), PAIR_OVERFLOW, reason)
     params = Variables(poses=orthonormalize_poses(s.x.poses), points=s.x.points)
     return LMResult(params=params, cost=s.lin.cost, initial_cost=s.initial_cost, iterations=s.iterations,
                     linear_solves=s.solves, converged=(reason >= 1) & (reason <= 3),
@@ -781,7 +787,7 @@ def _run(graph: FactorGraph, init: Variables, options: LMOptions):
     st = _prepare(graph, init, options)
     s = jax.lax.while_loop(lambda s: s.pending, lambda s: _body(graph, st, options, s, False),
                            _start(graph, init, st, options))
-    return _finish(s, options), s, st
+    return _finish(s, options, st), s, st
 
 
 def _sequential_batching(options: LMOptions) -> bool:
@@ -830,7 +836,7 @@ def _solve_unrolled(graph: FactorGraph, init: Variables, options: LMOptions) -> 
         return jax.tree.map(lambda a, b: jnp.where(s.pending, a, b), new, s), None
 
     s, _ = jax.lax.scan(body, _start(graph, init, st, options), None, length=options.unroll_steps + 1)
-    return _finish(s, options)
+    return _finish(s, options, st)
 
 
 # ----------------------------------------------------------------------------------------------
