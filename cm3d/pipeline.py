@@ -534,7 +534,9 @@ def factor_graph(win: Window, lm_: Landmarks, mem_points, mem_valid, cfg: Pipeli
     T = cfg.track.track_length
     obs = obs.replace(memory=jnp.repeat(is_mem, T))
     ref = trajectory.refine_trajectory(win.poses, win.intrinsic, points, obs, cfg.refine, pose_valid=win.valid)
-    poses = restore_depth_scale(ref.poses, win.poses, ref.points, points, lm_.seed, first & ~is_mem)
+    # the scale fix belongs to refined poses only: when the gate keeps the prior, so does the scale
+    fixed = restore_depth_scale(ref.poses, win.poses, ref.points, points, lm_.seed, first & ~is_mem)
+    poses = jnp.where(ref.refined, fixed, ref.poses)
     poses = jnp.where(win.valid[:, None, None], poses, win.poses)
     return ref, poses, obs, jnp.sum(is_mem)
 
