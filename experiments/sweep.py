@@ -233,10 +233,10 @@ def main(args) -> None:
     print(f"\nwrote {out / 'sweep.csv'} and {out / 'ate_vs_noise.png'}")
 
     name, cfg = configs[0]
-    print(f"\nthroughput ({name}, {args.frames}-frame sequences, {len(devices)} device(s)):")
-    print(f"{'batch':>6} | {'compile s':>9} | {'run s':>7} | {'seq/s':>7}")
-    seeds = list(range(max(args.throughput or [1])))
     if args.throughput:
+        print(f"\nthroughput ({name}, {args.frames}-frame sequences, {len(devices)} device(s)):")
+        print(f"{'batch':>6} | {'compile s':>9} | {'run s':>7} | {'seq/s':>7}")
+        seeds = list(range(max(args.throughput)))
         seqs, rows, inputs = make_batch(seeds, ["moderate"], args.frames, args.size, cfg)
         for b in args.throughput:
             sub = jax.tree.map(lambda a: a[:b], inputs)
