@@ -31,6 +31,7 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial.transform import Rotation
 
+from cm3d.data import synthetic
 from cm3d.data.atomic import atomic_write
 from cm3d.ops.neighbors import build_target_index
 from cm3d.ops.voxel import voxel_downsample
@@ -41,22 +42,14 @@ reg = o3d.pipelines.registration
 
 
 def room(n, seed=0, size=(6.0, 5.0, 3.0), boxes=6):
-    """Room-like cloud of n points: floor, ceiling, 4 walls, boxes; uniform by area, 3 mm noise."""
-    rng = np.random.default_rng(seed)
-    L, W, H = size
-    rects = [((0, 0, 0), (L, 0, 0), (0, W, 0)), ((0, 0, H), (L, 0, 0), (0, W, 0)), ((0, 0, 0), (L, 0, 0), (0, 0, H)),
-             ((0, W, 0), (L, 0, 0), (0, 0, H)), ((0, 0, 0), (0, W, 0), (0, 0, H)), ((L, 0, 0), (0, W, 0), (0, 0, H))]
+    """Room-like cloud of n points with ``boxes`` random boxes (fixed layout), 3 mm noise."""
+    L, W, _ = size
     brng = np.random.default_rng(1234)
+    layout = []
     for _ in range(boxes):
         x, y, _ = brng.uniform([0.5, 0.5, 0], [L - 1.5, W - 1.5, 0])
-        a, b, h = brng.uniform(0.3, 1.2, 3)
-        rects += [((x, y, h), (a, 0, 0), (0, b, 0)), ((x, y, 0), (a, 0, 0), (0, 0, h)), ((x, y + b, 0), (a, 0, 0), (0, 0, h)),
-                  ((x, y, 0), (0, b, 0), (0, 0, h)), ((x + a, y, 0), (0, b, 0), (0, 0, h))]
-    o, u, v = (np.array([r[i] for r in rects], float) for i in range(3))
-    area = np.linalg.norm(np.cross(u, v), axis=1)
-    k = rng.choice(len(rects), n, p=area / area.sum())
-    st = rng.random((n, 2))
-    return (o[k] + st[:, :1] * u[k] + st[:, 1:] * v[k] + rng.normal(scale=0.003, size=(n, 3))).astype(np.float32)
+        layout.append((x, y, *brng.uniform(0.3, 1.2, 3)))
+    return synthetic.room_cloud(n, seed, size, layout)
 
 
 def make_pair(n, seed):
@@ -251,7 +244,6 @@ def _o3d_global(src, tgt, voxel, orient, with_scaling):
 
 def bench_global(trials):
     """Success of global registration + ICP on partial-overlap synthetic visits, cm3d vs Open3D."""
-    from cm3d.data import synthetic
     from cm3d.solvers.align import GlobalOptions, global_registration, target_voxel_size
 
     world = synthetic.WorldConfig(height=48, width=64, fps=5.0)

@@ -9,6 +9,7 @@ import open3d as o3d
 import pytest
 from scipy.spatial.transform import Rotation
 
+from cm3d.data import synthetic
 from cm3d.ops.neighbors import build_target_index
 from cm3d.solvers.icp import ICPOptions, icp, icp_batch, icp_coarse_to_fine, stack_indices
 
@@ -37,18 +38,8 @@ def build(points, valid=None):
 
 def room(n, seed=0, size=(4.0, 3.0, 2.5)):
     """Room-like cloud: floor, ceiling, walls and three boxes, sampled uniformly by area."""
-    rng = np.random.default_rng(seed)
-    L, W, H = size
-    rects = [((0, 0, 0), (L, 0, 0), (0, W, 0)), ((0, 0, H), (L, 0, 0), (0, W, 0)), ((0, 0, 0), (L, 0, 0), (0, 0, H)),
-             ((0, W, 0), (L, 0, 0), (0, 0, H)), ((0, 0, 0), (0, W, 0), (0, 0, H)), ((L, 0, 0), (0, W, 0), (0, 0, H))]
-    for (x, y, a, b, h) in ((0.5, 0.4, 0.8, 0.5, 0.9), (2.4, 1.6, 0.6, 1.0, 0.5), (1.2, 2.0, 0.4, 0.4, 1.4)):
-        rects += [((x, y, h), (a, 0, 0), (0, b, 0)), ((x, y, 0), (a, 0, 0), (0, 0, h)), ((x, y + b, 0), (a, 0, 0), (0, 0, h)),
-                  ((x, y, 0), (0, b, 0), (0, 0, h)), ((x + a, y, 0), (0, b, 0), (0, 0, h))]
-    o, u, v = (np.array([r[i] for r in rects], float) for i in range(3))
-    area = np.linalg.norm(np.cross(u, v), axis=1)
-    k = rng.choice(len(rects), n, p=area / area.sum())
-    st = rng.random((n, 2))
-    return (o[k] + st[:, :1] * u[k] + st[:, 1:] * v[k] + rng.normal(scale=0.003, size=(n, 3))).astype(np.float32)
+    return synthetic.room_cloud(n, seed, size, ((0.5, 0.4, 0.8, 0.5, 0.9), (2.4, 1.6, 0.6, 1.0, 0.5),
+                                                (1.2, 2.0, 0.4, 0.4, 1.4)))
 
 
 def random_pose(rng, deg, metres):

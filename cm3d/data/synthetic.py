@@ -524,3 +524,21 @@ def generate_long_video(scene_seed: int = 0, visit: int = 0, num_frames: int = 2
     chunks = make_chunk_priors(images, gt, chunk_size, overlap, level, seed=scene_seed * 1009 + visit,
                                timestamps=np.arange(num_frames) / cfg.fps, meta=meta)
     return chunks, images, gt
+
+
+def room_cloud(n: int, seed: int = 0, size=(4.0, 3.0, 2.5), boxes=()) -> np.ndarray:
+    """A room-like point cloud (n, 3) float32 for registration tests and benchmarks: floor,
+    ceiling, four walls and axis-aligned boxes ``(x, y, a, b, h)`` (corner, footprint, height),
+    sampled uniformly by area with 3 mm Gaussian noise."""
+    rng = np.random.default_rng(seed)
+    L, W, H = size
+    rects = [((0, 0, 0), (L, 0, 0), (0, W, 0)), ((0, 0, H), (L, 0, 0), (0, W, 0)), ((0, 0, 0), (L, 0, 0), (0, 0, H)),
+             ((0, W, 0), (L, 0, 0), (0, 0, H)), ((0, 0, 0), (0, W, 0), (0, 0, H)), ((L, 0, 0), (0, W, 0), (0, 0, H))]
+    for (x, y, a, b, h) in boxes:
+        rects += [((x, y, h), (a, 0, 0), (0, b, 0)), ((x, y, 0), (a, 0, 0), (0, 0, h)), ((x, y + b, 0), (a, 0, 0), (0, 0, h)),
+                  ((x, y, 0), (0, b, 0), (0, 0, h)), ((x + a, y, 0), (0, b, 0), (0, 0, h))]
+    o, u, v = (np.array([r[i] for r in rects], float) for i in range(3))
+    area = np.linalg.norm(np.cross(u, v), axis=1)
+    k = rng.choice(len(rects), n, p=area / area.sum())
+    st = rng.random((n, 2))
+    return (o[k] + st[:, :1] * u[k] + st[:, 1:] * v[k] + rng.normal(scale=0.003, size=(n, 3))).astype(np.float32)
