@@ -119,6 +119,7 @@ def main() -> None:
                              for k, v in list(r["figures"].items())[:6])
             print(f"{name:>9} | {r['wall_s']:>7.0f} | {head or 'FAILED: ' + r.get('error', '')[-200:]}")
         from cm3d.data.atomic import atomic_write
+        from cm3d.outputs import write_json
 
         with atomic_write(path, "w") as f:
             f.write(report(results, info))
@@ -127,8 +128,7 @@ def main() -> None:
                    if isinstance(v, (int, float, str, bool))}
         figures.update({f"{n}_wall_s": r["wall_s"] for n, r in results.items()})
         if args.json:
-            with atomic_write(args.json, "w") as f:
-                json.dump(figures, f, indent=1)
+            write_json(args.json, figures)
         if any("error" in r for r in results.values()):
             sys.exit(1)
 

@@ -25,7 +25,6 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # OpenBLAS threads spin on shared cores
 
 import argparse  # noqa: E402
-import json  # noqa: E402
 import time  # noqa: E402
 
 import jax  # noqa: E402
@@ -33,7 +32,7 @@ import jax.numpy as jnp  # noqa: E402
 
 from cm3d import pipeline  # noqa: E402
 from cm3d.data import synthetic  # noqa: E402
-from cm3d.data.atomic import atomic_write  # noqa: E402
+from cm3d.outputs import write_json  # noqa: E402
 
 
 def time_front_end(seq, cfg: pipeline.PipelineConfig):
@@ -137,8 +136,7 @@ def main() -> None:
     print(f"compile: {r['compile_s']:.1f} s (once per image size and padded length)"
           + ("" if r["quick"] else f"; second visit recompiled: {r['recompiled']}"))
     if args.json:
-        with atomic_write(args.json, "w") as f:
-            json.dump(r, f, indent=1)
+        write_json(args.json, r)
 
 
 if __name__ == "__main__":

@@ -22,7 +22,6 @@ its ``*_100k`` voxel key then holds the 20k figure.
 """
 
 import argparse
-import json
 import time
 
 import jax
@@ -32,7 +31,7 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from cm3d.data import synthetic
-from cm3d.data.atomic import atomic_write
+from cm3d.outputs import write_json
 from cm3d.ops.neighbors import build_target_index
 from cm3d.ops.voxel import voxel_downsample
 from cm3d.solvers.icp import ICPOptions, icp, icp_batch, stack_indices
@@ -205,8 +204,7 @@ def main() -> None:
               "time_ratio_vs_small_gicp_p2l_20k", "time_ratio_with_build_20k", "err_diff_max", "voxel_time_ratio_100k"):
         print(f"  {k:36s} {figures[k]:.3f}")
     if args.json:
-        with atomic_write(args.json, "w") as f:
-            json.dump({k: (float(v) if not isinstance(v, bool) else v) for k, v in figures.items()}, f, indent=1)
+        write_json(args.json, {k: (float(v) if not isinstance(v, bool) else v) for k, v in figures.items()})
 
 
 GLOBAL_PAIRS = ((0, 0, 1), (0, 0, 2), (2, 1, 2), (3, 0, 1), (4, 1, 2), (5, 0, 1), (5, 0, 2), (5, 1, 2))

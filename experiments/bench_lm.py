@@ -34,7 +34,6 @@ if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", "")
 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
-import json  # noqa: E402
 import statistics  # noqa: E402
 import time  # noqa: E402
 
@@ -43,7 +42,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from cm3d import baselines  # noqa: E402
-from cm3d.data.atomic import atomic_write  # noqa: E402
+from cm3d.outputs import write_json  # noqa: E402
 from cm3d.ops import se3  # noqa: E402
 from cm3d.solvers import factors, lm  # noqa: E402
 
@@ -383,8 +382,7 @@ def main() -> None:
     for k, v in figures.items():
         print(f"  {k:28s} {'n/a (--quick: one problem size)' if v is None else f'{v:.4g}'}")
     if args.json:
-        with atomic_write(args.json, "w") as f:
-            json.dump(figures, f, indent=1)
+        write_json(args.json, figures)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,6 @@ gmm_ari_sklearn_own_init, otsu_time_ratio, otsu_equal, vmap_speedup (GMM), vmap_
 from __future__ import annotations
 
 import argparse
-import json
 import time
 import warnings
 
@@ -31,7 +30,7 @@ import numpy as np
 
 from cm3d import motion
 from cm3d.data import synthetic
-from cm3d.data.atomic import atomic_write
+from cm3d.outputs import write_json
 from cm3d.ops import flow as flow_ops
 from cm3d.ops import gmm, keypoints, otsu
 
@@ -151,8 +150,7 @@ def main() -> None:
     for name, t, note in rows:
         print(f"{name:28s} {t:>13s}   {note}")
     if args.json:
-        with atomic_write(args.json, "w") as f:
-            json.dump(figures, f, indent=1)
+        write_json(args.json, figures)
 
 
 if __name__ == "__main__":

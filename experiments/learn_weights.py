@@ -31,7 +31,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
 import functools  # noqa: E402
-import json  # noqa: E402
 import time  # noqa: E402
 
 import jax  # noqa: E402
@@ -41,7 +40,7 @@ import optax  # noqa: E402
 
 from cm3d import trajectory  # noqa: E402
 from cm3d.data import synthetic  # noqa: E402
-from cm3d.data.atomic import atomic_write  # noqa: E402
+from cm3d.outputs import write_json  # noqa: E402
 from cm3d.ops import flow as oflow  # noqa: E402
 from cm3d.solvers import factors, lm  # noqa: E402
 from cm3d.solvers.align import umeyama  # noqa: E402
@@ -242,8 +241,7 @@ def main() -> None:
           f"central FD {fd:.6e}, rel err {rel:.1e}")
     print(f"one training step (forward + implicit backward over {n_train} problems): {figures['step_s']:.2f} s")
     if args.json:
-        with atomic_write(args.json, "w") as f:
-            json.dump(figures, f, indent=1)
+        write_json(args.json, figures)
 
 
 if __name__ == "__main__":

@@ -26,14 +26,13 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # OpenBLAS threads spin on shared cores
 
 import argparse  # noqa: E402
-import json  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
 from cm3d import stitch  # noqa: E402
 from cm3d.data import synthetic  # noqa: E402
-from cm3d.data.atomic import atomic_write  # noqa: E402
+from cm3d.outputs import write_json  # noqa: E402
 from cm3d.eval import metrics  # noqa: E402
 
 LEVELS = tuple(synthetic.NOISE_LEVELS)
@@ -134,8 +133,7 @@ def main() -> None:
     print(f"\nmoderate: cm3d {out['ate_stitch_refined']:.4f} m vs naive {out['ate_naive']:.4f} m: "
           f"{100 * out['ate_improvement']:.1f} % lower (target >= 50 %)")
     if args.json:
-        with atomic_write(args.json, "w") as f:
-            json.dump(out, f, indent=1)
+        write_json(args.json, out)
 
 
 if __name__ == "__main__":

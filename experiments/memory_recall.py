@@ -48,6 +48,7 @@ from cm3d import memory
 from cm3d.data import synthetic
 from cm3d.data.atomic import atomic_write
 from cm3d.ops import descriptors, keypoints
+from cm3d.outputs import write_json
 
 WORLD = synthetic.WorldConfig(height=120, width=160, supersample=1, fps=1.0)
 CFG = memory.MemoryConfig(max_maps=200, max_points=4096, max_keyframes=16, max_keypoints=512,
@@ -336,8 +337,7 @@ def main(argv=None):
         print(f"completion improved on {100 * better:.0f}% of the maps")
     figures["prep_ms_per_query"] = 1e3 * sum(prep.values())
     if args.json:
-        with atomic_write(args.json) as f:
-            f.write(json.dumps(figures, indent=1).encode())
+        write_json(args.json, figures)
     return figures
 
 

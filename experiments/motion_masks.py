@@ -17,7 +17,6 @@ fps per stage).
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import jax
@@ -26,7 +25,7 @@ import numpy as np
 
 from cm3d import motion, refine
 from cm3d.data import synthetic
-from cm3d.data.atomic import atomic_write
+from cm3d.outputs import write_json
 from cm3d.eval.metrics import mask_metrics
 from cm3d.ops import flow as flow_ops
 from cm3d.ops import keypoints
@@ -186,8 +185,7 @@ def main() -> None:
     figures["fps_all"] = all_fps
     figures["iou_refined_minus_monst3r"] = figures["iou_refined"] - figures["iou_monst3r"]
     if args.json:
-        with atomic_write(args.json, "w") as f:
-            json.dump(figures, f, indent=1)
+        write_json(args.json, figures)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,6 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # OpenBLAS threads spin on shared cores
 
 import argparse  # noqa: E402
-import json  # noqa: E402
 import time  # noqa: E402
 
 import jax  # noqa: E402
@@ -29,7 +28,7 @@ import numpy as np  # noqa: E402
 
 from cm3d import baselines, trajectory  # noqa: E402
 from cm3d.data import synthetic  # noqa: E402
-from cm3d.data.atomic import atomic_write  # noqa: E402
+from cm3d.outputs import write_json  # noqa: E402
 from cm3d.eval import metrics  # noqa: E402
 from cm3d.ops import flow as oflow  # noqa: E402
 from cm3d.solvers import lm  # noqa: E402
@@ -130,8 +129,7 @@ def main() -> None:
         change = "n/a (prior exact)" if a < 1e-9 else f"{100 * (c - a) / a:+.1f} %"
         print(f"{level:>9} | {a:>9.5f} {p:>8.5f} {c:>8.5f} | {change}")
     if args.json:
-        with atomic_write(args.json, "w") as f:
-            json.dump(figures, f, indent=1)
+        write_json(args.json, figures)
 
 
 if __name__ == "__main__":

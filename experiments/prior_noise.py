@@ -8,12 +8,11 @@ metric per level: ``ate_prior_<level>``, ``rpe_trans_prior_<level>``, ``rpe_rot_
 """
 
 import argparse
-import json
 
 import numpy as np
 
 from cm3d.data import synthetic
-from cm3d.data.atomic import atomic_write
+from cm3d.outputs import write_json
 from cm3d.eval import metrics
 
 
@@ -78,8 +77,7 @@ def main() -> None:
     for k, v in figures.items():
         print(f"  {k:28s} {v:.5f}")
     if args.json:
-        with atomic_write(args.json, "w") as f:
-            json.dump(figures, f, indent=1)
+        write_json(args.json, figures)
 
 
 if __name__ == "__main__":

@@ -58,7 +58,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import dataclasses  # noqa: E402
 import functools  # noqa: E402
-import json  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -70,6 +69,7 @@ from cm3d import pipeline  # noqa: E402
 from cm3d.data import synthetic  # noqa: E402
 from cm3d.data.atomic import atomic_write  # noqa: E402
 from cm3d.eval import metrics  # noqa: E402
+from cm3d.outputs import write_json  # noqa: E402
 
 
 # ----------------------------------------------------------------------------------------------
@@ -244,8 +244,7 @@ def main(args) -> None:
             figures[f"seq_per_s_{b}"] = b / t_run
             print(f"{b:>6} | {t_first - t_run:>9.1f} | {t_run:>7.2f} | {b / t_run:>7.2f}")
     if args.json:
-        with atomic_write(args.json, "w") as f:
-            json.dump(figures, f, indent=1)
+        write_json(args.json, figures)
 
 
 if __name__ == "__main__":
