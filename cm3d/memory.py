@@ -48,6 +48,9 @@ GRID_CELL = 1.5  # a map's points are stored sorted by grid cells of this many m
 FORMAT_VERSION = 2  # 2: 3D keypoints (kp_points, kp_desc, kp_valid)
 
 
+DESCRIPTOR_3D_DIMS = {"handcrafted": descriptors.CLOUD_DIM, "pointnet2": 512}
+
+
 class MemoryFullError(RuntimeError):
     """The bank has no free map slot (capacity policy: refuse, never evict silently)."""
 
@@ -64,7 +67,8 @@ class MemoryConfig:
     max_points: int = 8192
     max_keyframes: int = 16
     image_dim: int = descriptors.IMAGE_DIM
-    cloud_dim: int = descriptors.CLOUD_DIM
+    cloud_dim: int | None = None  # 3D descriptor size: set from descriptor_3d when None
+    descriptor_3d: str = "handcrafted"  # "handcrafted" (ops.descriptors) or "pointnet2" (cm3d.models.pointnet2)
     hash_bits: int = 64
     hash_seed: int = 0
     hash_radius: int = 22  # a table row is a candidate when its code is this close (Hamming)
@@ -93,6 +97,13 @@ class MemoryConfig:
     verification: str = "full"  # "none" (2D recall only), "keypoints" (+ 3D RANSAC), "full" (+ ICP)
 
     def __post_init__(self):
+        if self.descriptor_3d not in DESCRIPTOR_3D_DIMS:
+            raise ValueError(f"MemoryConfig.descriptor_3d: unknown {self.descriptor_3d!r} ({', '.join(DESCRIPTOR_3D_DIMS)})")
+        if self.cloud_dim is None:
+            object.__setattr__(self, "cloud_dim", DESCRIPTOR_3D_DIMS[self.descriptor_3d])
+        elif self.cloud_dim != DESCRIPTOR_3D_DIMS[self.descriptor_3d]:
+            raise ValueError(f"MemoryConfig.cloud_dim: {self.descriptor_3d} descriptors have "
+                             f"{DESCRIPTOR_3D_DIMS[self.descriptor_3d]} dimensions, got {self.cloud_dim}")
         if self.verification not in ("none", "keypoints", "full"):
             raise ValueError(f"MemoryConfig.verification: unknown {self.verification!r} (none, keypoints, full)")
         if self.top_k < 1 or self.max_maps < 1 or self.max_points < 1 or self.max_keyframes < 1:
@@ -378,6 +389,16 @@ def sequence_cloud(depth, conf, K, cam_to_world, images, static, cfg: MemoryConf
                          conf=c.reshape(-1), valid=ok.reshape(-1))
 
 
+def cloud_descriptor(points, valid, cfg: MemoryConfig):
+    """The map's 3D global descriptor (cfg.cloud_dim,) of a voxelised cloud, per ``cfg.descriptor_3d``:
+    the handcrafted similarity-invariant histogram or the learned PointNet++ encoder (shipped weights)."""
+    if cfg.descriptor_3d == "pointnet2":
+        from cm3d.models import pointnet2  # imported on use: the handcrafted default needs no model
+
+        return pointnet2.cloud_descriptor(points, valid)
+    return descriptors.cloud_descriptor(points, valid)
+
+
 def _downsample_to_capacity(points, valid, features, voxel_size, capacity: int):
     """Voxel downsample, growing the voxel by 1.25x until the occupied voxels fit ``capacity``."""
     from cm3d.ops.voxel import voxel_downsample
@@ -403,7 +424,7 @@ def _entry_from_points(points, colors, conf, valid, kf_desc, kf_valid, voxel_siz
     return MapEntry(points=vox.points, normals=jnp.where(vox.valid[:, None], normals, 0.0),
                     conf=vox.features[:, 3], colors=jnp.clip(jnp.round(vox.features[:, :3]), 0, 255).astype(jnp.uint8),
                     point_valid=vox.valid, kf_desc=kf_desc, kf_valid=kf_valid,
-                    cloud_desc=descriptors.cloud_descriptor(vox.points, vox.valid), voxel_size=vs)
+                    cloud_desc=cloud_descriptor(vox.points, vox.valid, cfg), voxel_size=vs)
 
 
 def build_entry(cloud: SequenceCloud, kf_desc, kf_valid, cfg: MemoryConfig,
@@ -798,7 +819,7 @@ def update_map(bank: MemoryBank, map_id, entry: MapEntry, transform, cfg: Memory
         conf=bank.conf.at[m].set(vox.features[:, 3]),
         colors=bank.colors.at[m].set(jnp.clip(jnp.round(vox.features[:, :3]), 0, 255).astype(jnp.uint8)),
         point_valid=bank.point_valid.at[m].set(vox.valid),
-        cloud_desc=bank.cloud_desc.at[m].set(descriptors.cloud_descriptor(vox.points, vox.valid)),
+        cloud_desc=bank.cloud_desc.at[m].set(cloud_descriptor(vox.points, vox.valid, cfg)),
         kf_desc=bank.kf_desc.at[m].set(kf), kf_codes=bank.kf_codes.at[m].set(descriptors.hash_codes(kf, bank.planes)),
         kf_valid=bank.kf_valid.at[m].set(kfv), visits=bank.visits.at[m].add(1), voxel_size=bank.voxel_size.at[m].set(vs),
         kp_points=bank.kp_points.at[m].set(kp.points), kp_desc=bank.kp_desc.at[m].set(kp.desc),
