@@ -16,11 +16,23 @@ def _generate(args) -> int:
     out = Path(args.out)
     for v in range(args.visits):
         seq = synthetic.generate(args.scene, v, args.frames, args.level, cfg)
-        path = out / f"scene{args.scene:03d}_visit{v:02d}.npz"
-        io.save_sequence(path, seq)
-        io.write_tum(path.with_suffix(".gt.txt"), seq.timestamps, seq.gt.cam_to_world)
-        io.write_tum(path.with_suffix(".prior.txt"), seq.timestamps, seq.cam_to_world)
-        print(f"wrote {path} ({seq.num_frames} frames, {seq.image_size[0]}x{seq.image_size[1]}, "
+        stem = out / f"scene{args.scene:03d}_visit{v:02d}"
+        if args.format == "npz":
+            path = stem.with_suffix(".npz")
+            io.save_sequence(path, seq)
+        elif args.format == "tum":
+            from cm3d.data.tum_rgbd import write_tum_rgbd
+
+            path = stem
+            write_tum_rgbd(path, seq)
+        else:
+            from cm3d.data.loaders import write_image_folder
+
+            path = stem
+            write_image_folder(path, seq)
+        io.write_tum(Path(f"{stem}.gt.txt"), seq.timestamps, seq.gt.cam_to_world)
+        io.write_tum(Path(f"{stem}.prior.txt"), seq.timestamps, seq.cam_to_world)
+        print(f"wrote {path} ({args.format}: {seq.num_frames} frames, {seq.image_size[0]}x{seq.image_size[1]}, "
               f"level {args.level}) and its .gt.txt / .prior.txt trajectories")
     return 0
 
@@ -78,17 +90,28 @@ def _compile_cache() -> None:
         pass
 
 
+def _holds_chunks(path) -> bool:
+    """A ``.npz`` with a ``chunk`` key: several chunks of one long video in one file."""
+    import zipfile
+
+    path = Path(path)
+    if not (path.is_file() and path.suffix == ".npz" and zipfile.is_zipfile(path)):
+        return False
+    with zipfile.ZipFile(path) as z:
+        return "chunk.npy" in z.namelist()
+
+
 def _load_inputs(paths):
     """One sequence, or (several paths) chunks of one long video stitched into one."""
     from cm3d.data.loaders import load_input
 
-    if len(paths) == 1:
+    if len(paths) == 1 and not _holds_chunks(paths[0]):
         return load_input(paths[0]), None
-    try:
-        from cm3d import stitch
-    except ImportError:
-        raise ValueError("several inputs: long-video chunk stitching is not available in this version") from None
+    from cm3d import stitch
+
     chunks = stitch.load_chunks(paths)
+    if len(chunks) == 1:
+        return chunks[0], None
     res = stitch.stitch_chunks(chunks)
     return res.sequence, res
 
@@ -207,6 +230,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--level", default="moderate", help="prior noise: none, slight, moderate, severe")
     g.add_argument("--height", type=int, default=384)
     g.add_argument("--width", type=int, default=512)
+    g.add_argument("--format", choices=("npz", "tum", "images"), default="npz",
+                   help="npz: sequence file (VGGT keys); tum: TUM RGB-D folder (depth PNGs, pose prior from "
+                        "RGB-D odometry when loaded); images: images/ + priors.npz")
     g.set_defaults(func=_generate)
 
     e = sub.add_parser("eval", help="ATE/RPE of an estimated TUM trajectory against ground truth")
@@ -222,7 +248,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "static_map.ply, recall.json, metrics.json (with ground truth) and PNG pictures.")
     r.add_argument("inputs", nargs="+", metavar="INPUT",
                    help="a .npz sequence, an image folder (images/ + priors.npz) or a TUM RGB-D folder; "
-                   "several .npz files: overlapping chunks of one long video, stitched first")
+                   "several .npz files (or one holding a 'chunk' key): overlapping chunks of one long video, "
+                   "stitched first")
     r.add_argument("--out", required=True, metavar="DIR", help="output folder")
     r.add_argument("--memory", metavar="BANK", help="memory bank file: loaded if present, updated, saved atomically")
     r.add_argument("--no-memory", action="store_true", help="no recall / verify / update")

@@ -54,27 +54,10 @@ def test_read_real_kitti_flow_png(shared_data):
     assert np.all(flow[~valid] == 0)
 
 
-def _write_tum_folder(folder, seq, depth_scale=5000.0):
-    (folder / "rgb").mkdir(parents=True)
-    (folder / "depth").mkdir()
-    rgb_lines, depth_lines = ["# color images"], ["# depth maps"]
-    for i, t in enumerate(seq.timestamps):
-        cv2.imwrite(str(folder / f"rgb/{t:.6f}.png"), cv2.cvtColor(seq.images[i], cv2.COLOR_RGB2BGR))
-        d = np.round(seq.gt.depth[i] * depth_scale).astype(np.uint16)
-        cv2.imwrite(str(folder / f"depth/{t + 0.004:.6f}.png"), d)  # depth stamped 4 ms later
-        rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")
-        depth_lines.append(f"{t + 0.004:.6f} depth/{t + 0.004:.6f}.png")
-    (folder / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
-    (folder / "depth.txt").write_text("\n".join(depth_lines) + "\n")
-    write_tum(folder / "groundtruth.txt", seq.timestamps, seq.gt.cam_to_world)
-    K = seq.gt.intrinsic[0]
-    (folder / "intrinsics.txt").write_text(f"{K[0, 0]} {K[1, 1]} {K[0, 2]} {K[1, 2]}\n")
-
-
 def test_tum_rgbd_folder_with_open3d_odometry_prior(tmp_path):
     cfg = synthetic.WorldConfig(height=120, width=160, num_moving=0)
     seq = synthetic.generate(4, 0, 6, "none", cfg)
-    _write_tum_folder(tmp_path / "rgbd_dataset_synthetic", seq)
+    tum_rgbd.write_tum_rgbd(tmp_path / "rgbd_dataset_synthetic", seq)
     got = tum_rgbd.load_tum_rgbd(tmp_path / "rgbd_dataset_synthetic")
     assert got.num_frames == 6 and got.gt is not None
     np.testing.assert_array_equal(got.images, seq.images)
@@ -134,7 +117,7 @@ def test_load_input_dispatches_every_format(tmp_path):
     np.testing.assert_array_equal(got.images, seq.images)
     np.testing.assert_allclose(got.cam_to_world, seq.cam_to_world, atol=1e-9)
 
-    _write_tum_folder(tmp_path / "tum", seq)
+    tum_rgbd.write_tum_rgbd(tmp_path / "tum", seq)
     assert loaders.load_input(tmp_path / "tum").meta["source"] == "tum_rgbd"
 
     with pytest.raises(FileNotFoundError):

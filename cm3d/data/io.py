@@ -154,9 +154,8 @@ def _validate(seq: Sequence, source, names: dict[str, str]) -> None:
         fail("meta_json", f"meta is not JSON-serialisable ({e})")
 
 
-def save_sequence(path: str | os.PathLike, seq: Sequence, compress: bool = False) -> None:
-    """Validate ``seq`` and write it atomically to ``path`` as ``.npz`` (format in the module docstring)."""
-    validate_sequence(seq, source=os.fspath(path))
+def sequence_arrays(seq: Sequence) -> dict[str, np.ndarray]:
+    """The arrays of the file format for ``seq`` (see the module docstring), without validation."""
     c2w = np.asarray(seq.cam_to_world, np.float64)
     arrays = {
         "images": np.asarray(seq.images),
@@ -175,6 +174,13 @@ def save_sequence(path: str | os.PathLike, seq: Sequence, compress: bool = False
               "gt_intrinsic": (g.intrinsic, np.float64), "gt_dynamic_mask": (g.dynamic_mask, bool),
               "gt_flow": (g.flow, np.float32)}
         arrays.update({k: np.asarray(a, dt) for k, (a, dt) in gt.items() if a is not None})
+    return arrays
+
+
+def save_sequence(path: str | os.PathLike, seq: Sequence, compress: bool = False) -> None:
+    """Validate ``seq`` and write it atomically to ``path`` as ``.npz`` (format in the module docstring)."""
+    validate_sequence(seq, source=os.fspath(path))
+    arrays = sequence_arrays(seq)
     with atomic_write(path, "wb") as f:
         (np.savez_compressed if compress else np.savez)(f, **arrays)
 

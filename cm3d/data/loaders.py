@@ -45,6 +45,29 @@ def load_image_folder(folder) -> Sequence:
     return io.sequence_from_arrays(arrays, source=str(folder))
 
 
+def write_image_folder(folder, seq: Sequence) -> None:
+    """Write ``seq`` as an image folder (``images/000000.png`` ... + ``priors.npz`` with every other
+    key), the layout :func:`load_image_folder` reads; the folder must not hold images already."""
+    import cv2
+
+    from cm3d.data.atomic import atomic_write
+
+    folder = Path(folder)
+    io.validate_sequence(seq, source=str(folder))
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    if any((folder / "images").iterdir()):
+        raise ValueError(f"{folder / 'images'}: not empty (refusing to mix two sequences)")
+    for i, im in enumerate(seq.images):
+        ok, png = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(im), cv2.COLOR_RGB2BGR))
+        if not ok:
+            raise ValueError(f"frame {i}: cannot encode as PNG")
+        with atomic_write(folder / f"images/{i:06d}.png", "wb") as f:
+            f.write(png.tobytes())
+    arrays = {k: v for k, v in io.sequence_arrays(seq).items() if k != "images"}
+    with atomic_write(folder / "priors.npz", "wb") as f:
+        np.savez(f, **arrays)
+
+
 def load_input(path, **kwargs) -> Sequence:
     """Load a sequence from any supported input (see the module docstring)."""
     path = Path(path)

@@ -107,6 +107,47 @@ def rgbd_odometry(images: np.ndarray, depth: np.ndarray, K: np.ndarray, depth_tr
     return np.array(poses), failures
 
 
+def write_tum_rgbd(folder, seq: Sequence, depth_scale: float = DEPTH_SCALE) -> None:
+    """Write ``seq`` as a TUM RGB-D folder: ``rgb/`` and ``depth/`` PNGs (depth uint16 =
+    metres x ``depth_scale``, stamped 4 ms after its image, as a real sensor's are), ``rgb.txt``,
+    ``depth.txt``, ``intrinsics.txt`` and, with ground truth, ``groundtruth.txt``. The depth written
+    is the ground truth's when present (a depth sensor), else the prior's."""
+    import cv2
+
+    from cm3d.data.atomic import atomic_write
+    from cm3d.data.tum import write_tum
+
+    folder = Path(folder)
+    depth = seq.gt.depth if seq.gt is not None and seq.gt.depth is not None else seq.depth
+    if np.nanmax(depth) * depth_scale > np.iinfo(np.uint16).max:
+        raise ValueError(f"depth: {np.nanmax(depth):.3g} m does not fit a uint16 PNG at scale {depth_scale}")
+    (folder / "rgb").mkdir(parents=True, exist_ok=True)
+    (folder / "depth").mkdir(exist_ok=True)
+
+    def png(path, img):
+        ok, buf = cv2.imencode(".png", img)
+        if not ok:
+            raise ValueError(f"{path}: cannot encode as PNG")
+        with atomic_write(path, "wb") as f:
+            f.write(buf.tobytes())
+
+    rgb_lines, depth_lines = ["# color images"], ["# depth maps"]
+    for i, t in enumerate(np.asarray(seq.timestamps, float)):
+        png(folder / f"rgb/{t:.6f}.png", cv2.cvtColor(np.ascontiguousarray(seq.images[i]), cv2.COLOR_RGB2BGR))
+        png(folder / f"depth/{t + 0.004:.6f}.png",
+            np.round(np.nan_to_num(depth[i]) * depth_scale).astype(np.uint16))
+        rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")
+        depth_lines.append(f"{t + 0.004:.6f} depth/{t + 0.004:.6f}.png")
+    for name, lines in (("rgb.txt", rgb_lines), ("depth.txt", depth_lines)):
+        with atomic_write(folder / name, "w") as f:
+            f.write("\n".join(lines) + "\n")
+    if seq.gt is not None:
+        write_tum(folder / "groundtruth.txt", seq.timestamps, seq.gt.cam_to_world)
+    K = np.asarray(seq.intrinsic[0])
+    with atomic_write(folder / "intrinsics.txt", "w") as f:
+        f.write(f"{K[0, 0]} {K[1, 1]} {K[0, 2]} {K[1, 2]}\n")
+
+
 def load_tum_rgbd(folder, K: np.ndarray | None = None, max_frames: int | None = None,
                   stride: int = 1, max_diff: float = 0.02) -> Sequence:
     """A TUM RGB-D folder as a :class:`Sequence` (metric priors; ground truth when available)."""
