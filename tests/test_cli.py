@@ -225,3 +225,26 @@ def test_run_chunks_from_several_files_or_one(tmp_path, capsys):
     # a chunk file among other files is refused with a one-line error
     assert cli.main(["run", str(tmp_path / "all.npz"), str(paths[0]), "--out", str(tmp_path / "x")]) == 2
     assert "loaded alone" in capsys.readouterr().err
+
+
+def test_run_bad_folder_inputs_are_one_line_errors(tmp_path, capsys):
+    def err_of(path):
+        assert cli.main(["run", str(path), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("cm3d run: error:") and err.count("\n") == 1, err
+        return err
+
+    (tmp_path / "empty").mkdir()
+    assert "not a recognised input folder" in err_of(tmp_path / "empty")
+    (tmp_path / "imgs" / "images").mkdir(parents=True)
+    assert "no .png/.jpg images" in err_of(tmp_path / "imgs")
+    (tmp_path / "imgs" / "images" / "0.png").write_bytes(b"not a png")
+    assert "cannot read image" in err_of(tmp_path / "imgs")
+    tum = tmp_path / "tum"
+    tum.mkdir()
+    (tum / "rgb.txt").write_text("1.0 a.png\n2.0 b.png\n")
+    assert "depth.txt missing" in err_of(tum)
+    (tum / "depth.txt").write_text("1.0 a_d.png\nnot-a-time b_d.png\n")
+    assert "depth.txt:2: bad timestamp" in err_of(tum)
+    (tmp_path / "seq.txt").write_text("x")
+    assert "unsupported file type" in err_of(tmp_path / "seq.txt")
