@@ -19,6 +19,7 @@ from cm3d.ops.neighbors import (
     nearest_within_radius,
     radius_neighbors,
     seed,
+    walk,
     walk_to_convergence,
 )
 
@@ -112,15 +113,21 @@ def test_walk_then_certified_search_is_exact():
     @jax.jit
     def run(index, q, q2):
         m = seed(index, q, active)
+        # one walk step from the seeds: the matches that moved are not local minima yet, so only the
+        # settled ones may be certified (the others are searched)
+        m1, d1, moved = walk(index, q, m)
+        early = certified_nearest(index, q, m1, d1, active, 0.2, settled=~moved)
         m, d2 = walk_to_convergence(index, q, m)
         first = certified_nearest(index, q, m, d2, active, 0.2)
         _, _, _, cache = exact_nearest(index, q, m, d2, active, 0.2, empty_cache(q))
         m, d2 = walk_to_convergence(index, q2, m)
-        return first, exact_nearest(index, q2, m, d2, active, 0.2, cache)[:3]  # reuses the cache
+        return early, first, exact_nearest(index, q2, m, d2, active, 0.2, cache)[:3]  # reuses the cache
 
+    # crowded blocks (plane intersections) overflow the exact-search tables: exercised below
+    assert int(index.truncated) > 0 and int(jnp.sum(index.block_total > index.block_cand.shape[1])) > 0
     tree = cKDTree(p)
-    first, second = run(index, q, q2)
-    for (pos, d2, searched), qq, most in zip((first, second), (q, q2), (N // 2, int(first[2]) // 2)):
+    early, first, second = run(index, q, q2)
+    for (pos, d2, searched), qq, most in zip((early, first, second), (q, q, q2), (N, N // 2, int(first[2]) // 2)):
         idx = np.where(np.asarray(pos) >= 0, np.asarray(index.order)[np.clip(np.asarray(pos), 0, None)], -1)
         d_ref, i_ref = tree.query(np.asarray(qq), distance_upper_bound=0.2)
         np.testing.assert_array_equal(idx, np.where(np.isfinite(d_ref), i_ref, -1))

@@ -18,8 +18,9 @@ The ICP correspondence search is a walk on the graph: a source point keeps its c
 and moves it to the closest of ``m``'s neighbours. When the walk stops at ``m`` with distance ``d``
 and ``2 d < rho[m]``, ``m`` is provably the exact nearest neighbour (any closer point would lie within
 ``2 d`` of ``m``, hence in its list); :func:`certified_nearest` checks that and searches only the
-remaining queries exactly: the fine cells within ``1.3 d`` of the query when ``d`` is below a fine
-cell (about k candidates), else the coarse cells within it. :func:`exact_nearest` also keeps a
+remaining queries exactly: first in the table of the query's fine cell (the first ``max_candidates``
+points of the 27 fine cells around it, kept from the build; exact when the nearest found is closer
+than the cells the table does not hold), else in the coarse cells within ``1.3 d``. :func:`exact_nearest` also keeps a
 :class:`NearestCache` of those searches: a query that moved less than half the gap between its
 nearest and second-nearest point keeps its answer (ICP's last iterations barely move).
 
@@ -66,10 +67,15 @@ class TargetIndex:
       (M, 3, k) their coordinates, rho (M,) certified radius of each list.
     Coarse grid (cell = ``radius``): coarse (CellHash), cell_start / cell_count / cell_seed (H,)
       per hash slot: first sorted position, number of points, the point nearest the cell centre.
-    Fine grid (cell = ``fine_cell``, nested): fine (CellHash), fine_start / fine_count per slot.
+    Fine grid (cell = ``fine_cell``, nested): fine (CellHash), fine_start / fine_count per slot;
+      fine_row (H_f,) per slot: its row in block_cand (M, C) (the first C sorted positions of the
+      27 fine cells around each occupied fine cell, nearest cells first) and block_total (M,) (how
+      many points those 27 cells hold), block_full (M,) how many of those cells (nearest first) are
+      complete in the row: the exact-search table (``C`` = ``max_candidates``).
     origin (3,), sub () int32 fine cells per coarse cell, fine_cell () metres.
     overflow () int32: hash keys that did not fit (0 in practice; results are not exact otherwise);
-    truncated () int32: points whose k-NN candidates exceeded ``max_candidates`` (rho = 0 there).
+    truncated () int32: points whose k-NN candidates exceeded ``max_candidates`` (their list is
+    exact only up to the nearest fine cell left out, which bounds rho).
     Static: radius (metres), k.
     """
 
@@ -87,6 +93,10 @@ class TargetIndex:
     fine: CellHash
     fine_start: jnp.ndarray
     fine_count: jnp.ndarray
+    fine_row: jnp.ndarray
+    block_cand: jnp.ndarray
+    block_total: jnp.ndarray
+    block_full: jnp.ndarray
     origin: jnp.ndarray
     sub: jnp.ndarray
     fine_cell: jnp.ndarray
@@ -150,6 +160,15 @@ def pca_normals(nbp: jnp.ndarray, mask: jnp.ndarray) -> jnp.ndarray:
     return jnp.where((cnt >= 3)[:, None], _smallest_eigvec(cov), 0.0)
 
 
+def _sq_dist_soa(points, cand, q):
+    """Squared distances (B, C) from queries q (B, 3) to points[cand] (cand (B, C)), gathered per
+    coordinate (structure of arrays: XLA CPU gathers scalars much faster than (., 3) rows)."""
+    d2 = 0.0
+    for a in range(3):
+        d2 = d2 + (points[:, a][cand] - q[:, a][:, None]) ** 2
+    return d2
+
+
 def _fine_keys(index_or_origin, q, fine_cell, sub):
     fk = cell_coords(q, index_or_origin, fine_cell)
     return fk, jnp.floor_divide(fk, sub)
@@ -194,10 +213,11 @@ def _cells_within(q, key, origin, cell, dmax):
     return jnp.sum(gap * gap, axis=-1) <= (dmax[:, None] * (1 + 1e-4) + 1e-4 * cell) ** 2
 
 
-def _gather_candidates(h: CellHash, start, count, key, j, cell_mask=None):
+def _gather_candidates(h: CellHash, start, count, key, j, cell_mask=None, full_cells: bool = False):
     """First ``len(j)`` points (sorted positions) of the 27 cells around int keys (B, 3) (only
     those where ``cell_mask`` (B, 27), if given) -> (cand (B, C), valid (B, C), total (B,) number
-    of points in those cells)."""
+    of points in those cells); full_cells (with ``j = arange(C)``): also the number of leading
+    cells (OFFSETS27 order) whose points are all among the C (B,)."""
     nb = hash_lookup(h, key[:, None, :] + jnp.asarray(OFFSETS27)[None])  # (B, 27)
     if cell_mask is not None:
         nb = jnp.where(cell_mask, nb, -1)
@@ -212,7 +232,19 @@ def _gather_candidates(h: CellHash, start, count, key, j, cell_mask=None):
     excl = jnp.take_along_axis(cum - cnt, cellidx, axis=1)
     cand = jnp.take_along_axis(st, cellidx, axis=1) + j[None, :] - excl
     valid = j[None, :] < total[:, None]
+    if full_cells:
+        return jnp.where(valid, cand, 0), valid, total, jnp.sum(cum <= j.shape[0], axis=1).astype(jnp.int32)
     return jnp.where(valid, cand, 0), valid, total
+
+
+def _unseen_gap2(q, fk, origin, cell, nfull):
+    """Squared distance (B,) from queries q (B, 3) to the nearest of the 27 cells around their cell
+    fk (B, 3) that is *not* among the first ``nfull`` (B,) (OFFSETS27 order); inf when all are."""
+    lo = origin + (fk[:, None, :] + jnp.asarray(OFFSETS27)[None]).astype(q.dtype) * cell  # (B, 27, 3)
+    gap = jnp.maximum(jnp.maximum(lo - q[:, None, :], q[:, None, :] - (lo + cell)), 0.0)
+    g2 = jnp.sum(gap * gap, axis=-1)
+    unseen = jnp.arange(27)[None, :] >= nfull[:, None]
+    return jnp.min(jnp.where(unseen, g2, jnp.inf), axis=1)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -242,7 +274,7 @@ def build_target_index(points, valid=None, *, radius: float, k: int = 16, cell_f
     dtype = points.dtype
     ok = valid_points(points, valid)
     if n == 0:
-        return _empty_index(dtype, float(radius), k)
+        return _empty_index(dtype, float(radius), k, C)
     lo, _ = masked_bounds(points, ok)
     origin = lo - 0.5 * radius
 
@@ -293,18 +325,18 @@ def build_target_index(points, valid=None, *, radius: float, k: int = 16, cell_f
 
     def cell_candidates(i, _ok):
         key = hf.slot_key[jnp.clip(ucell[i], 0, hf.size - 1)]
-        cand, cvalid, total = _gather_candidates(hf, fine_start, fine_count, key, j)
-        return cand, total
+        cand, _, total, nfull = _gather_candidates(hf, fine_start, fine_count, key, j, full_cells=True)
+        return cand, total, nfull
 
-    ctab, ctot = compact_apply(pos < ucount, cell_candidates,
-                               (jnp.zeros((n, C), jnp.int32), jnp.zeros((n,), jnp.int32)), chunk=1024)
+    zi = jnp.zeros((n,), jnp.int32)
+    ctab, ctot, cfull = compact_apply(pos < ucount, cell_candidates, (jnp.zeros((n, C), jnp.int32), zi, zi),
+                                      chunk=1024)
     u = slot_to_u[jnp.clip(fs, 0, hf.size - 1)]
     cand = ctab[u]
     total = jnp.where(sval, ctot[u], 0)
     cvalid = j[None, :] < total[:, None]
     cand = jnp.where(cvalid, cand, pos[:, None])
-    diff = sp[cand] - sp[:, None, :]
-    d2 = jnp.where(cvalid, jnp.sum(diff * diff, axis=-1), jnp.inf)
+    d2 = jnp.where(cvalid, _sq_dist_soa(sp, cand, sp), jnp.inf)
     neg, a = lax.top_k(-d2, k)
     graph = jnp.take_along_axis(cand, a, 1)
     d2k = -neg
@@ -314,9 +346,15 @@ def build_target_index(points, valid=None, *, radius: float, k: int = 16, cell_f
     truncated = sval & (total > C)
     # The 27 fine cells around a point's cell hold every point closer than h + (its distance to
     # its own cell's boundary), so a complete list is exact up to that or its k-th distance.
-    lo_cell = origin + fk[order].astype(dtype) * h
+    # A truncated list holds the points of its leading full cells: it is exact up to the nearest
+    # cell left out.
+    fks = fk[order]
+    lo_cell = origin + fks.astype(dtype) * h
     edge = jnp.min(jnp.minimum(sp - lo_cell, lo_cell + h - sp), axis=-1)
-    rho = jnp.where(truncated | ~sval, 0.0, jnp.minimum(dk, (h + jnp.maximum(edge, 0.0)) * (1 - 1e-4)))
+    unseen = compact_apply(truncated, lambda i, _ok: jnp.sqrt(_unseen_gap2(sp[i], fks[i], origin, h, cfull[u[i]])),
+                           jnp.full((n,), jnp.inf, dtype), chunk=256)
+    seen = jnp.minimum(h + jnp.maximum(edge, 0.0), unseen) * (1 - 1e-4)
+    rho = jnp.where(sval, jnp.minimum(dk, seen), 0.0)
 
     # PCA normals over the neighbour list (self included), as Open3D's estimate_normals.
     nbp = sp[graph]  # (n, k, 3)
@@ -326,12 +364,13 @@ def build_target_index(points, valid=None, *, radius: float, k: int = 16, cell_f
     return TargetIndex(points=sp, normals=normals, valid=sval, order=order, graph=graph.astype(jnp.int32),
                        graph_pts=jnp.transpose(nbp, (0, 2, 1)), rho=rho, coarse=hc, cell_start=cell_start,
                        cell_count=cell_count, cell_seed=cell_seed, fine=hf, fine_start=fine_start,
-                       fine_count=fine_count, origin=origin, sub=sub, fine_cell=h,
+                       fine_count=fine_count, fine_row=jnp.where(occupied, slot_to_u, -1), block_cand=ctab,
+                       block_total=ctot, block_full=cfull, origin=origin, sub=sub, fine_cell=h,
                        overflow=overflow.astype(jnp.int32), truncated=jnp.sum(truncated).astype(jnp.int32),
                        radius=float(radius), k=int(k))
 
 
-def _empty_index(dtype, radius: float, k: int) -> TargetIndex:
+def _empty_index(dtype, radius: float, k: int, max_candidates: int) -> TargetIndex:
     z = jnp.zeros
     hc = CellHash(slot_item=jnp.full((2,), EMPTY, jnp.int32), slot_key=z((2, 3), jnp.int32),
                   max_probe=jnp.int32(0), overflow=jnp.int32(0))
@@ -339,7 +378,10 @@ def _empty_index(dtype, radius: float, k: int) -> TargetIndex:
                        order=z((0,), jnp.int32), graph=z((0, k), jnp.int32), graph_pts=z((0, 3, k), dtype),
                        rho=z((0,), dtype), coarse=hc, cell_start=z((2,), jnp.int32), cell_count=z((2,), jnp.int32),
                        cell_seed=jnp.full((2,), -1, jnp.int32), fine=hc, fine_start=z((2,), jnp.int32),
-                       fine_count=z((2,), jnp.int32), origin=z((3,), dtype), sub=jnp.int32(1),
+                       fine_count=z((2,), jnp.int32), fine_row=jnp.full((2,), -1, jnp.int32),
+                       block_cand=z((0, max_candidates), jnp.int32), block_total=z((0,), jnp.int32),
+                       block_full=z((0,), jnp.int32),
+                       origin=z((3,), dtype), sub=jnp.int32(1),
                        fine_cell=jnp.asarray(radius, dtype), overflow=jnp.int32(0), truncated=jnp.int32(0),
                        radius=radius, k=k)
 
@@ -406,19 +448,29 @@ def _exact_chunk(index: TargetIndex, q, radius, width: int = 128, dmax=None, wit
     return out
 
 
-def _fine_chunk(index: TargetIndex, q, dmax, width: int = 48):
-    """Nearest among the first ``width`` points of the *fine* cells around queries q (B, 3) that
-    come within dmax (B,) (<= one fine cell, at least a known upper bound of the nearest distance)
-    -> (pos (B,) or -1, squared distance (B,), lower bound of the squared distance of every other
-    point (B,), complete (B,): all points of those cells were seen, so the answer is exact)."""
-    fk = cell_coords(q, index.origin, index.fine_cell)
-    cmask = _cells_within(q, fk, index.origin, index.fine_cell, dmax)
-    cand, ok, total = _gather_candidates(index.fine, index.fine_start, index.fine_count, fk,
-                                         jnp.arange(width, dtype=jnp.int32), cmask)
-    d2 = jnp.where(ok, jnp.sum((index.points[cand] - q[:, None, :]) ** 2, axis=-1), jnp.inf)
+def _table_chunk(index: TargetIndex, q):
+    """Nearest among the table candidates of the query's fine cell (the points of the 27 fine cells
+    around it, ``index.block_cand``) for queries q (B, 3) -> (pos (B,) or -1, squared distance (B,),
+    lower bound of the squared distance of every other point (B,), complete (B,): the answer is
+    exact: the nearest lies closer than the block's boundary and than the cells the table row
+    left out (a crowded block keeps its nearest cells), beyond which nothing was seen))."""
+    h = index.fine_cell
+    fk = cell_coords(q, index.origin, h)
+    slot = hash_lookup(index.fine, fk)
+    row = jnp.where(slot >= 0, index.fine_row[jnp.clip(slot, 0, index.fine.size - 1)], -1)
+    rc = jnp.clip(row, 0)
+    cand = index.block_cand[rc]
+    total = jnp.where(row >= 0, index.block_total[rc], 0)
+    ok = jnp.arange(cand.shape[1], dtype=jnp.int32)[None, :] < total[:, None]
+    d2 = jnp.where(ok, _sq_dist_soa(index.points, cand, q), jnp.inf)
     p, dmin, second = _top2(d2, cand)
-    has = jnp.isfinite(dmin)
-    return jnp.where(has, p, -1), dmin, jnp.minimum(second, dmax * dmax), total <= width
+    lo = index.origin + (fk - 1).astype(q.dtype) * h
+    edge = jnp.min(jnp.minimum(q - lo, lo + 3 * h - q), axis=-1)
+    edge = jnp.maximum(edge - 1e-4 * h - 8 * jnp.finfo(q.dtype).eps * jnp.max(jnp.abs(q), axis=-1), 0.0)
+    e2 = edge * edge
+    e2 = jnp.minimum(e2, _unseen_gap2(q, fk, index.origin, h, jnp.where(row >= 0, index.block_full[rc], 0)))
+    complete = (row >= 0) & (dmin <= e2)
+    return jnp.where(jnp.isfinite(dmin), p, -1), dmin, jnp.minimum(second, e2), complete
 
 
 def _check_radius(index: TargetIndex, radius):
@@ -528,16 +580,20 @@ def empty_cache(q) -> NearestCache:
                         slack=jnp.full(q.shape[:1], -1.0, q.dtype))
 
 
-def certified_nearest(index: TargetIndex, q, m, d2, active, radius, chunk: int = 512):
+def certified_nearest(index: TargetIndex, q, m, d2, active, radius, chunk: int = 512, settled=None):
     """Exact nearest within ``radius`` given walk matches (m, d2): keep a match when the graph
     certifies it (``2 d < rho[m]``: m is the nearest; or ``d + radius < rho[m]`` with ``d > radius``:
     nothing within radius), search the rest exactly: the fine cells within the walk distance when
     it is below the fine cell (and they are not crowded), else the coarse cells.
+    settled: optional (N,) bool, where m is known to be a local minimum of the walk (the last walk
+    step did not move it; default all): only those are certified (the certificate needs m's own
+    list to have been scanned).
     -> (pos (N,) sorted position or -1, squared distance (N,) or inf, number searched exactly)."""
-    return exact_nearest(index, q, m, d2, active, radius, empty_cache(q), chunk)[:3]
+    return exact_nearest(index, q, m, d2, active, radius, empty_cache(q), chunk, settled)[:3]
 
 
-def exact_nearest(index: TargetIndex, q, m, d2, active, radius, cache: NearestCache, chunk: int = 512):
+def exact_nearest(index: TargetIndex, q, m, d2, active, radius, cache: NearestCache, chunk: int = 512,
+                  settled=None):
     """:func:`certified_nearest` that also reuses the answers of a :class:`NearestCache` (a query
     that moved by ``delta < slack`` since its search keeps its answer: every other point was at
     least ``2 slack`` farther, resp. nothing within ``radius + slack``) and returns the cache
@@ -547,6 +603,8 @@ def exact_nearest(index: TargetIndex, q, m, d2, active, radius, cache: NearestCa
     d = jnp.sqrt(d2)
     sure_in = d < 0.5 * rho
     sure_out = (d > radius) & (d + radius < rho)
+    if settled is not None:
+        sure_in, sure_out = sure_in & settled, sure_out & settled
     need = active & ~(sure_in | sure_out)
     inside = active & sure_in & (d <= radius)
     pos = jnp.where(inside, m, -1)
@@ -563,24 +621,22 @@ def exact_nearest(index: TargetIndex, q, m, d2, active, radius, cache: NearestCa
     pos = jnp.where(hit, cache.pos, pos)
     dist2 = jnp.where(hit, cd2, dist2)
     need = need & ~reuse
-    # A walk distance d <= fine cell bounds the nearest distance, so the fine cells within d of the
-    # query (scanned a little farther, for the cache's slack) hold the nearest point; the rest
-    # searches the coarse cells.
-    h = index.fine_cell
-    near = need & (d <= h)
+    # The table of the query's fine cell (the points of the 27 fine cells around it) answers
+    # exactly when the nearest is closer than the block's boundary; the rest searches the coarse
+    # cells within the walk distance.
 
     def slack(p, dd, lb2):
         return jnp.where(p >= 0, 0.5 * (jnp.sqrt(lb2) - jnp.sqrt(dd)), jnp.sqrt(lb2) - r)
 
-    def fine(i, ok):
-        p, dd, lb2, complete = _fine_chunk(index, q[i], jnp.minimum(h, 1.3 * d[i]))
+    def table(i, ok):
+        p, dd, lb2, complete = _table_chunk(index, q[i])
         inside = dd <= r2
         p = jnp.where(inside, p, -1)
         return p, jnp.where(inside, dd, jnp.inf), complete, jnp.where(inside, slack(p, dd, lb2), -1.0)
 
     init = (pos, dist2, jnp.zeros_like(need), jnp.full_like(d, -1.0))
-    pos, dist2, complete, sl = compact_apply(near, fine, init, chunk)
-    coarse = need & ~(near & complete)
+    pos, dist2, complete, sl = compact_apply(need, table, init, chunk)
+    coarse = need & ~complete
 
     def far(i, ok):
         p, dd, lb1, lb2 = _exact_chunk(index, q[i], radius, dmax=1.3 * d[i], with_second=True)

@@ -65,7 +65,10 @@ class ICPOptions:
     seed_steps: walk steps allowed to settle the seeds; walk_steps: walk steps per iteration;
     exact_iterations: at most this many final iterations with exact correspondences once the walk
     phase has converged to ``walk_tolerance`` x the relative thresholds (0: walk only, to the
-    thresholds themselves; the reported statistics are exact either way).
+    thresholds themselves; the reported statistics are exact either way). None (default): 0 for
+    point-to-plane (its walk-only fixed point is Open3D's to ~2e-5 m: Gauss-Newton on the planes
+    does not care which nearby point of the same plane is matched), 100 for point-to-point (whose
+    exact fixed point differs from Open3D's stopping point, see docs/point_clouds.md).
     subsample / levels: coarse-to-fine over the source: up to ``levels - 1`` coarse stages on every
     ``subsample**l``-th source point (coarsest first, only while that leaves >= 256 points), each
     to ``walk_tolerance`` x the thresholds, before the full cloud (1 / levels=1: full cloud only).
@@ -82,7 +85,7 @@ class ICPOptions:
     relative_rmse: float = 1e-6
     seed_steps: int = 16
     walk_steps: int = 1
-    exact_iterations: int = 100
+    exact_iterations: int | None = None
     walk_tolerance: float = 10.0
     subsample: int = 4
     levels: int = 3
@@ -180,6 +183,8 @@ def icp(source, index: TargetIndex, init=None, valid=None, options: ICPOptions =
     Deterministic; jit with ``options`` static (``jax.jit(icp, static_argnames="options")``).
     """
     o = options
+    if o.exact_iterations is None:
+        o = dataclasses.replace(o, exact_iterations=0 if o.method == "point_to_plane" else 100)
     if o.max_correspondence_distance > index.radius * (1 + 1e-6):
         raise ValueError(f"max_correspondence_distance {o.max_correspondence_distance} exceeds the index radius "
                          f"{index.radius}; build the index with radius >= it")
@@ -248,8 +253,8 @@ def icp(source, index: TargetIndex, init=None, valid=None, options: ICPOptions =
     # fixed point of exact ICP (Open3D's).
     def exact_match(T, m, d2, cache):
         q = _apply(T, src)
-        m, d2, _ = walk(index, q, m)
-        pos, dd2, searched, cache = exact_nearest(index, q, m, d2, sv, r, cache)
+        m, d2, moved = walk(index, q, m)  # certificates need m's own list scanned: moved ones are searched
+        pos, dd2, searched, cache = exact_nearest(index, q, m, d2, sv, r, cache, settled=~moved)
         return jnp.where(pos >= 0, pos, m), jnp.where(pos >= 0, dd2, d2), pos, dd2, searched, cache
 
     m, d2, pos, dd2, searched, cache = exact_match(T, m, d2, empty_cache(src))
