@@ -78,21 +78,24 @@ class MemoryConfig:
     voxel_resolution: float = 60.0  # map voxel = largest extent / this (grown while over capacity)
     min_conf_quantile: float = 0.3  # static points: confidence above this quantile of the sequence
     pixel_stride: int = 4  # static points: every stride-th pixel
-    min_fitness: float = 0.4  # verification: share of the query's ICP points with a map point nearby
+    # verification thresholds: tuned on the tuning split of experiments/memory_recall.py (never on its test split)
+    min_fitness: float = 0.15  # verification: share of the query's ICP points with a map point nearby
     max_rmse: float = 0.75  # verification: ICP inlier RMSE, in map voxels
     normal_radius: float = 0.2  # neighbourhood cell for map normals (map units: VGGT-normalised)
-    min_inliers: int = 100  # verification: absolute number of ICP inliers
+    min_inliers: int = 38  # verification: absolute number of ICP inliers
     max_keypoints: int = 512  # 3D keypoints (local descriptors lifted to the map frame) per map
     keypoint_dim: int = 128  # local descriptor size (RootSIFT)
     ratio: float = 0.85  # keypoint matching: Lowe ratio against the best match elsewhere in 3D
     ransac_hypotheses: int = 256  # Sim(3) RANSAC: 3-point hypotheses per candidate
     ransac_distance: float = 2.0  # keypoint inlier distance, in map voxels
-    min_keypoint_inliers: int = 7  # verification: RANSAC inliers among keypoint matches
+    min_keypoint_inliers: int = 6  # verification: RANSAC inliers, distinct 3D points (keypoint_clusters)
+    loose_descriptor: float = 0.6  # RANSAC scoring also counts mutual matches (no ratio test) below this L2
+    cluster_separation: float = 2.0  # query keypoints closer than this (query voxels) are one 3D point
     scale_range: tuple[float, float] = (0.25, 4.0)  # plausible query -> map scale ratios
     icp_points: int = 256  # query voxels used by the verifying ICP (an even subsample)
     icp_iterations: int = 5
     max_colour_difference: float = 40.0  # RGB (0-255) distance for a colour-consistent ICP inlier
-    min_colour_agreement: float = 0.6  # verification: share of colour-consistent ICP inliers
+    min_colour_agreement: float = 0.75  # verification: share of colour-consistent ICP inliers
     grid_per_cell: int = 3  # ICP neighbour search: points looked at per grid cell (see GRID_CELL)
     verification: str = "full"  # "none" (2D recall only), "keypoints" (+ 3D RANSAC), "full" (+ ICP)
 
@@ -462,18 +465,20 @@ class Verification:
     colour_agreement: jax.Array
 
 
-def match_keypoints(q: Keypoints, m: Keypoints, ratio: float, min_separation):
+def match_keypoints(q: Keypoints, m: Keypoints, ratio: float, min_separation, d2=None):
     """Mutual nearest neighbours in descriptor space with a 3D-aware ratio test.
 
     The second-best match is searched among map keypoints farther than ``min_separation`` (map
     units) from the best one, so repeated views of one 3D point do not fail the ratio test.
+    ``d2``: the (Nq, Nm) squared descriptor distances when already computed (inf for invalid pairs).
     Returns (j (Nq,) map index per query keypoint, ok (Nq,) bool).
     """
     q = jax.tree.map(jnp.asarray, q)
     m = jax.tree.map(jnp.asarray, m)
-    d2 = 2.0 - 2.0 * (q.desc @ m.desc.T)  # unit descriptors: squared L2
-    pair = q.valid[:, None] & m.valid[None, :]
-    d2 = jnp.where(pair, d2, jnp.inf)
+    if d2 is None:
+        d2 = 2.0 - 2.0 * (q.desc @ m.desc.T)  # unit descriptors: squared L2
+        pair = q.valid[:, None] & m.valid[None, :]
+        d2 = jnp.where(pair, d2, jnp.inf)
     j = jnp.argmin(d2, axis=1)
     best = jnp.min(d2, axis=1)
     far = jnp.sum((m.points[None, :, :] - m.points[j][:, None, :]) ** 2, -1) > min_separation**2
@@ -516,20 +521,45 @@ def triangle_sim3(src, dst):
     return s, R, t, ok
 
 
-def ransac_sim3(src, dst, ok, key, threshold, num_hypotheses: int, scale_range):
+def keypoint_clusters(points, valid, separation):
+    """Cluster id (N,) int32 of each keypoint: the index of the first valid keypoint closer than
+    ``separation`` (itself when none is earlier). Keypoints of one 3D point seen in several frames
+    share an id, so counting distinct ids counts 3D points, not views (:func:`distinct_count`)."""
+    points, valid = jnp.asarray(points), jnp.asarray(valid, bool)
+    near = (jnp.sum((points[:, None] - points[None]) ** 2, -1) < separation**2) & valid[None, :] & valid[:, None]
+    first = jnp.argmax(near, axis=1)  # the earliest close keypoint (itself at worst)
+    return jnp.where(valid, first, jnp.arange(points.shape[0])).astype(jnp.int32)
+
+
+def distinct_count(mask, cluster):
+    """Number of distinct ``cluster`` ids among the True entries of ``mask`` (..., N)."""
+    n = mask.shape[-1]
+    hit = jnp.zeros(mask.shape[:-1] + (n,), jnp.int32).at[..., cluster].max(mask.astype(jnp.int32))
+    return jnp.sum(hit, -1)
+
+
+def ransac_sim3(src, dst, ok, key, threshold, num_hypotheses: int, scale_range, score_ok=None, cluster=None):
     """Sim(3) RANSAC on correspondences ``src[i] -> dst[i]`` (N, 3) where ``ok``: a fixed number of
     random 3-point hypotheses (:func:`triangle_sim3`; inconsistent edge ratios or a scale outside
     ``scale_range`` score 0) scored by inliers within ``threshold``; the best refitted by Umeyama
-    on its inliers (twice). Returns (transform (4, 4), scale, inliers (N,) bool)."""
+    on its inliers (twice). Returns (transform (4, 4), scale, inliers (N,) bool).
+
+    ``score_ok`` (N,): the correspondences that score and refit (default ``ok``; hypotheses are
+    always drawn from ``ok``), e.g. a looser set than the one that is safe to sample from;
+    ``cluster`` (N,): :func:`keypoint_clusters` of ``src``, so a refit is kept when it does not
+    lose distinct 3D points (several views of one point count once).
+    """
     from cm3d.solvers.align import umeyama
 
     src, dst, ok = jnp.asarray(src, jnp.float32), jnp.asarray(dst, jnp.float32), jnp.asarray(ok, bool)
+    score_ok = ok if score_ok is None else jnp.asarray(score_ok, bool)
+    count = jnp.sum if cluster is None else (lambda m: distinct_count(m, cluster))
     n_ok = jnp.sum(ok)
     order = jnp.argsort(~ok, stable=True)  # the usable correspondences first
     idx = order[jax.random.randint(key, (num_hypotheses, 3), 0, jnp.maximum(n_ok, 1))]
     s, R, t, good = jax.vmap(lambda i: triangle_sim3(src[i], dst[i]))(idx)
     pred = s[:, None, None] * jnp.einsum("hij,nj->hni", R, src) + t[:, None, :]
-    inl = ok[None] & (jnp.sum((pred - dst[None]) ** 2, -1) < threshold**2)
+    inl = score_ok[None] & (jnp.sum((pred - dst[None]) ** 2, -1) < threshold**2)
     plausible = good & (s >= scale_range[0]) & (s <= scale_range[1]) & jnp.all(jnp.isfinite(pred), (1, 2))
     score = jnp.where(plausible, jnp.sum(inl, 1), 0)
     h = jnp.argmax(score)
@@ -538,8 +568,8 @@ def ransac_sim3(src, dst, ok, key, threshold, num_hypotheses: int, scale_range):
     for _ in range(2):
         s2, R2, t2 = umeyama(src, dst, best, with_scale=True)
         T2 = _similarity(s2, R2, t2)
-        inl2 = ok & (jnp.sum((src @ T2[:3, :3].T + T2[:3, 3] - dst) ** 2, -1) < threshold**2)
-        better = ((jnp.sum(inl2) >= jnp.sum(best)) & (s2 >= scale_range[0]) & (s2 <= scale_range[1])
+        inl2 = score_ok & (jnp.sum((src @ T2[:3, :3].T + T2[:3, 3] - dst) ** 2, -1) < threshold**2)
+        better = ((count(inl2) >= count(best)) & (s2 >= scale_range[0]) & (s2 <= scale_range[1])
                   & jnp.all(jnp.isfinite(T2)))
         T = jnp.where(better, T2, T)
         best = jnp.where(better, inl2, best)
@@ -645,14 +675,29 @@ def icp_sim3(src, src_valid, dst, dst_valid, init, distance, iterations: int, ce
     return T, count, fitness, rmse, j, inl
 
 
-def _keypoint_stage(bank: MemoryBank, m, query: Keypoints, cfg: MemoryConfig, key):
-    """Match the query's keypoints with map ``m``'s and fit Sim(3) by RANSAC: (T, scale, matches, inliers)."""
+def _keypoint_stage(bank: MemoryBank, m, query: Keypoints, cluster, cfg: MemoryConfig, key):
+    """Match the query's keypoints with map ``m``'s and fit Sim(3) by RANSAC: (T, scale, strict
+    matches, distinct inliers). Hypotheses come from the strict matches (mutual + ratio test); they
+    are scored on the strict and the loose matches (mutual, descriptor distance below
+    ``cfg.loose_descriptor``, no ratio test), one per query keypoint cluster (its best match), so
+    a hypothesis is scored by distinct 3D points, not by views of one point. ``cluster``:
+    :func:`keypoint_clusters` of the query."""
     vs = jnp.maximum(bank.voxel_size[m], 1e-12)
+    thr = cfg.ransac_distance * vs
     mk = Keypoints(bank.kp_points[m], bank.kp_desc[m], bank.kp_valid[m])
-    j, ok = match_keypoints(query, mk, cfg.ratio, cfg.ransac_distance * vs)
-    T, scale, inl = ransac_sim3(query.points, mk.points[j], ok, key, cfg.ransac_distance * vs,
-                                cfg.ransac_hypotheses, cfg.scale_range)
-    return T, scale, jnp.sum(ok).astype(jnp.int32), jnp.sum(inl).astype(jnp.int32)
+    d2 = jnp.where(query.valid[:, None] & mk.valid[None, :], 2.0 - 2.0 * (query.desc @ mk.desc.T), jnp.inf)
+    j, strict = match_keypoints(query, mk, cfg.ratio, thr, d2=d2)
+    n = jnp.arange(d2.shape[0])
+    best = d2[n, j]
+    mutual = jnp.argmin(d2, axis=0)[j] == n
+    ok = strict | (query.valid & mutual & (best < cfg.loose_descriptor**2))
+    rank = jnp.where(ok, best, jnp.inf)
+    tops = ok & (rank <= jax.ops.segment_min(rank, cluster, num_segments=n.shape[0])[cluster])
+    first = jax.ops.segment_min(jnp.where(tops, n, n.shape[0]), cluster, num_segments=n.shape[0])
+    rep = tops & (first[cluster] == n)  # one per cluster: its best match (ties: the first)
+    T, scale, inl = ransac_sim3(query.points, mk.points[j], strict, key, thr, cfg.ransac_hypotheses, cfg.scale_range,
+                                score_ok=rep, cluster=cluster)
+    return T, scale, jnp.sum(strict).astype(jnp.int32), distinct_count(inl, cluster).astype(jnp.int32)
 
 
 def _icp_stage(bank: MemoryBank, m, entry: MapEntry, init, cfg: MemoryConfig):
@@ -693,24 +738,26 @@ def _decide(bank, m, T, scale, matches, kp_inliers, icp, cfg: MemoryConfig) -> V
                         fitness=fitness, inlier_count=count.astype(jnp.int32), inlier_rmse=rmse, colour_agreement=agree)
 
 
-def _query_keypoints(entry: MapEntry, cfg: MemoryConfig) -> Keypoints:
-    if entry.keypoints is None:
-        return _fit_keypoints(None, 3, cfg.keypoint_dim)
-    return entry.keypoints
+def _query_keypoints(entry: MapEntry, cfg: MemoryConfig):
+    """The query's keypoints (none: three invalid ones) and their :func:`keypoint_clusters`."""
+    kp = _fit_keypoints(None, 3, cfg.keypoint_dim) if entry.keypoints is None else entry.keypoints
+    sep = cfg.cluster_separation * jnp.maximum(jnp.asarray(entry.voxel_size, jnp.float32), 1e-12)
+    return kp, keypoint_clusters(kp.points, kp.valid, sep)
 
 
 def verify(bank: MemoryBank, map_id, entry: MapEntry, cfg: MemoryConfig, key) -> Verification:
     """Verify that the query ``entry`` (its own frame and scale) shows map ``map_id``.
 
-    1. keypoint matches (:func:`match_keypoints`) and Sim(3) RANSAC (:func:`ransac_sim3`): at least
-       ``cfg.min_keypoint_inliers`` inliers within ``cfg.ransac_distance`` map voxels;
+    1. keypoint matches (:func:`match_keypoints`) and Sim(3) RANSAC (:func:`ransac_sim3`, scored by
+       distinct 3D points, see :func:`_keypoint_stage`): at least ``cfg.min_keypoint_inliers``
+       distinct inliers within ``cfg.ransac_distance`` map voxels;
     2. (``cfg.verification == "full"``) Sim(3) ICP of ``cfg.icp_points`` query voxels against the
        map's from the RANSAC pose (:func:`icp_sim3`), accepted on absolute inlier count
        (``cfg.min_inliers``), fitness (``cfg.min_fitness``) and inlier RMSE (``cfg.max_rmse`` voxels).
     Geometry is what rejects look-alike scenes. ``cfg.verification == "none"`` accepts any stored map.
     """
     m = jnp.maximum(map_id, 0)
-    T, scale, matches, inliers = _keypoint_stage(bank, m, _query_keypoints(entry, cfg), cfg, key)
+    T, scale, matches, inliers = _keypoint_stage(bank, m, *_query_keypoints(entry, cfg), cfg, key)
     icp = _icp_stage(bank, m, entry, T, cfg) if cfg.verification == "full" else None
     return _decide(bank, jnp.where(map_id >= 0, m, -1), T, scale, matches, inliers, icp, cfg)
 
@@ -740,9 +787,10 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
         v = _decide(bank, cand[0], jnp.eye(4), jnp.ones(()), jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), None, cfg)
         return Identification(recall=r, candidate_inliers=jnp.zeros(cfg.top_k, jnp.int32), verification=v,
                               map_id=jnp.where(v.accepted, cand[0], -1))
-    qk = _query_keypoints(entry, cfg)
+    qk, cluster = _query_keypoints(entry, cfg)
     keys = jax.random.split(key, cfg.top_k)
-    Ts, scales, matches, inliers = jax.vmap(lambda m, k: _keypoint_stage(bank, jnp.maximum(m, 0), qk, cfg, k))(cand, keys)
+    Ts, scales, matches, inliers = jax.vmap(
+        lambda m, k: _keypoint_stage(bank, jnp.maximum(m, 0), qk, cluster, cfg, k))(cand, keys)
     inliers = jnp.where(cand >= 0, inliers, -1)
     b = jnp.argmax(inliers)
     m = cand[b]

@@ -1,5 +1,6 @@
 """Memory bank: pytree, capacity policy, hashed recall, persistence (atomic, checksummed)."""
 
+import functools
 import os
 import signal
 import subprocess
@@ -16,6 +17,11 @@ from cm3d import memory
 from cm3d.ops import descriptors
 
 CFG = memory.MemoryConfig(max_maps=4, max_points=64, max_keyframes=3)
+# compiled once and shared: eager JAX compiles every primitive separately, which is what made this
+# file slow
+_insert = jax.jit(memory.insert_map)
+_ransac = jax.jit(memory.ransac_sim3, static_argnums=(5, 6))
+_cloud_descriptor = jax.jit(descriptors.cloud_descriptor)
 
 
 def _entry(seed, cfg=CFG):
@@ -27,27 +33,27 @@ def _entry(seed, cfg=CFG):
         points=pts, normals=np.tile([0, 0, 1.0], (cfg.max_points, 1)), conf=np.ones(cfg.max_points),
         colors=rng.integers(0, 255, (cfg.max_points, 3)).astype(np.uint8),
         point_valid=np.arange(cfg.max_points) < 50, kf_desc=kf, kf_valid=np.array([True, True, False]),
-        cloud_desc=np.asarray(descriptors.cloud_descriptor(pts)), voxel_size=np.float32(0.1))
+        cloud_desc=np.asarray(_cloud_descriptor(pts)), voxel_size=np.float32(0.1))
 
 
 def _bank(n):
     bank = memory.empty(CFG)
     for i in range(n):
-        bank, _ = memory.add_map(bank, _entry(i))
+        bank, _ = _insert(bank, _entry(i))
     return bank
 
 
 def test_insert_fills_slots_and_full_bank_is_refused():
     bank = _bank(4)
     assert int(bank.num_maps) == 4 and list(np.asarray(bank.visits)) == [1, 1, 1, 1]
-    same, map_id = jax.jit(memory.insert_map)(bank, _entry(9))
+    same, map_id = _insert(bank, _entry(9))
     assert int(map_id) == -1
     jax.tree.map(np.testing.assert_array_equal, same, bank)
     with pytest.raises(memory.MemoryFullError, match="full"):
         memory.add_map(bank, _entry(9))
-    freed = memory.remove_map(bank, 2)
+    freed = jax.jit(memory.remove_map)(bank, 2)
     assert list(np.asarray(freed.map_valid)) == [True, True, False, True]
-    again, map_id = memory.insert_map(freed, _entry(9))
+    again, map_id = _insert(freed, _entry(9))
     assert int(map_id) == 2
 
 
@@ -171,7 +177,9 @@ def test_select_keyframes_spacing_and_capacity():
     assert not bool(np.any(ok))
 
 
+@functools.lru_cache(maxsize=1)
 def _room_sequence():
+    """One small render shared by the tests below (rendered once per session)."""
     from cm3d.data import synthetic
 
     return synthetic.generate(2, 0, 6, "slight", synthetic.WorldConfig(height=48, width=64))
@@ -180,18 +188,26 @@ def _room_sequence():
 SEQ_CFG = memory.MemoryConfig(max_maps=3, max_points=512, max_keyframes=4, pixel_stride=2)
 
 
-def _entry_of(seq, cfg=SEQ_CFG):
-    cloud = memory.sequence_cloud(jnp.asarray(seq.depth), jnp.asarray(seq.depth_conf),
-                                  jnp.asarray(seq.intrinsic, jnp.float32), jnp.asarray(seq.cam_to_world, jnp.float32),
-                                  jnp.asarray(seq.images), jnp.asarray(~seq.gt.dynamic_mask), cfg)
-    d = jax.vmap(descriptors.image_descriptor)(seq.images, ~seq.gt.dynamic_mask)
+@functools.partial(jax.jit, static_argnums=6)
+def _cloud_and_entry(depth, conf, K, c2w, images, static, cfg):
+    cloud = memory.sequence_cloud(depth, conf, K, c2w, images, static, cfg)
+    d = jax.vmap(descriptors.image_descriptor)(images, static)
     idx, ok = memory.select_keyframes(d, jnp.ones(len(d), bool), 0.1, cfg.max_keyframes)
     return cloud, memory.build_entry(cloud, d[idx], ok, cfg)
 
 
+@functools.lru_cache(maxsize=4)
+def _entry_of(cfg=SEQ_CFG):
+    """Static cloud and map entry of :func:`_room_sequence` (built once per config, jitted)."""
+    seq = _room_sequence()
+    return _cloud_and_entry(jnp.asarray(seq.depth), jnp.asarray(seq.depth_conf),
+                            jnp.asarray(seq.intrinsic, jnp.float32), jnp.asarray(seq.cam_to_world, jnp.float32),
+                            jnp.asarray(seq.images), jnp.asarray(~seq.gt.dynamic_mask), cfg)
+
+
 def test_sequence_cloud_and_entry_from_a_render():
     seq = _room_sequence()
-    cloud, entry = _entry_of(seq)
+    cloud, entry = _entry_of()
     st = SEQ_CFG.pixel_stride
     assert cloud.points.shape == (6 * 24 * 32, 3)
     # static, confident pixels only; lifted points agree with the priors' own unprojection
@@ -199,7 +215,8 @@ def test_sequence_cloud_and_entry_from_a_render():
     assert not np.any(np.asarray(cloud.valid) & dyn)
     from cm3d.ops import camera
 
-    full = np.asarray(camera.unproject(seq.depth, seq.intrinsic, seq.cam_to_world))[:, ::st, ::st].reshape(-1, 3)
+    full = np.asarray(jax.jit(camera.unproject)(seq.depth, seq.intrinsic, seq.cam_to_world))
+    full = full[:, ::st, ::st].reshape(-1, 3)
     np.testing.assert_allclose(np.asarray(cloud.points), full, atol=1e-4)
     # downsampled to capacity, finite, with unit normals and a unit 3D descriptor
     n = int(entry.point_valid.sum())
@@ -212,9 +229,8 @@ def test_sequence_cloud_and_entry_from_a_render():
 
 
 def test_capacity_grows_the_voxel_instead_of_dropping_points():
-    seq = _room_sequence()
     small = memory.MemoryConfig(max_maps=2, max_points=64, max_keyframes=2, pixel_stride=2, voxel_resolution=200)
-    cloud, entry = _entry_of(seq, small)
+    cloud, entry = _entry_of(small)
     assert 0 < int(entry.point_valid.sum()) <= 64
     # the mean of all voxel points still covers the whole cloud (nothing was cut away)
     pts = np.asarray(cloud.points)[np.asarray(cloud.valid)]
@@ -236,15 +252,14 @@ def test_relocalize_applies_a_similarity_to_poses():
 
 
 def test_update_map_merges_into_the_map_frame():
-    seq = _room_sequence()
-    _, entry = _entry_of(seq)
-    bank, m = memory.add_map(memory.empty(SEQ_CFG), entry)
+    _, entry = _entry_of()
+    bank, m = _insert(memory.empty(SEQ_CFG), entry)
     # the same cloud, expressed in a frame 2x larger and shifted: moved back by the transform
     S = np.diag([2.0, 2.0, 2.0, 1.0])
     S[:3, 3] = [1.0, -2.0, 0.5]
     moved = entry.replace(points=entry.points * 2.0 + jnp.array([1.0, -2.0, 0.5]))
     Sinv = np.linalg.inv(S)
-    merged = memory.update_map(bank, m, moved, jnp.asarray(Sinv, jnp.float32), SEQ_CFG)
+    merged = jax.jit(memory.update_map, static_argnums=4)(bank, m, moved, jnp.asarray(Sinv, jnp.float32), SEQ_CFG)
     assert int(merged.visits[m]) == 2
     a = np.asarray(bank.points[m])[np.asarray(bank.point_valid[m])]
     b = np.asarray(merged.points[m])[np.asarray(merged.point_valid[m])]
@@ -298,15 +313,50 @@ def test_ransac_sim3_recovers_a_similarity_among_outliers():
     dst[outlier] = rng.uniform(-3, 3, (outlier.sum(), 3))
     ok = np.ones(200, bool)
     ok[-20:] = False
-    T, scale, inl = jax.jit(memory.ransac_sim3, static_argnums=(5, 6))(
-        src, dst, ok, jax.random.PRNGKey(0), 0.05, 256, (0.25, 4.0))
+    T, scale, inl = _ransac(src, dst, ok, jax.random.PRNGKey(0), 0.05, 256, (0.25, 4.0))
     np.testing.assert_allclose(float(scale), s, rtol=1e-2)
     np.testing.assert_allclose(np.asarray(T[:3, :3]), s * R, atol=2e-2)
     inl = np.asarray(inl)
     assert not np.any(inl & ~ok) and np.mean(inl[ok & ~outlier]) > 0.95 and not np.any(inl & outlier & ok & False)
     # no usable correspondences: nothing is an inlier, nothing is NaN
-    T, scale, inl = memory.ransac_sim3(src, dst, np.zeros(200, bool), jax.random.PRNGKey(0), 0.05, 64, (0.25, 4.0))
+    T, scale, inl = _ransac(src, dst, np.zeros(200, bool), jax.random.PRNGKey(0), 0.05, 256, (0.25, 4.0))
     assert not np.any(np.asarray(inl)) and np.all(np.isfinite(np.asarray(T)))
+
+
+def test_keypoint_clusters_and_distinct_count_match_a_loop():
+    rng = np.random.default_rng(3)
+    centres = rng.uniform(-5, 5, (12, 3))
+    pts = (centres[rng.integers(0, 12, 60)] + rng.normal(scale=0.02, size=(60, 3))).astype(np.float32)
+    valid = rng.random(60) < 0.9
+    cid = np.asarray(jax.jit(memory.keypoint_clusters)(pts, valid, 0.2))
+    for i in range(60):  # reference: the first valid keypoint within the separation (itself at worst)
+        close = [j for j in range(60) if valid[j] and np.linalg.norm(pts[i] - pts[j]) < 0.2]
+        assert cid[i] == (close[0] if valid[i] else i)
+    masks = rng.random((4, 60)) < 0.5
+    counts = np.asarray(memory.distinct_count(jnp.asarray(masks), jnp.asarray(cid)))
+    assert list(counts) == [len(set(cid[m])) for m in masks]
+    # views of one 3D point are one cluster: 12 centres at most, each valid point in one
+    assert len(set(cid[valid])) <= 12
+
+
+def test_ransac_scores_on_a_looser_set_and_counts_distinct_points():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(4)
+    src = rng.uniform(-1, 1, (120, 3)).astype(np.float32)
+    R, s, t = Rotation.from_rotvec([0.2, 0.5, -0.3]).as_matrix(), 0.8, np.array([1.0, 0.0, -1.0])
+    dst = (s * src @ R.T + t).astype(np.float32)
+    dst[60:] = rng.uniform(-3, 3, (60, 3))  # outliers
+    sample = np.zeros(120, bool)
+    sample[:8] = True  # a few safe matches to sample from ...
+    sample[60:70] = True
+    score = np.ones(120, bool)  # ... scored on all of them
+    T, scale, inl = jax.jit(memory.ransac_sim3, static_argnums=(5, 6))(
+        src, dst, sample, jax.random.PRNGKey(1), 0.02, 128, (0.25, 4.0), score_ok=score)
+    np.testing.assert_allclose(float(scale), s, rtol=1e-3)
+    assert np.asarray(inl)[:60].all() and not np.asarray(inl)[60:].any()  # inliers beyond the sampled ones
+    cluster = np.arange(120) // 2  # pairs of views of one point: half as many distinct points
+    assert int(memory.distinct_count(inl, jnp.asarray(cluster))) == 30
 
 
 def test_grid_nearest_is_exact_within_a_cell():
@@ -330,13 +380,13 @@ def test_entry_keypoints_are_padded_and_never_nan():
     cfg = memory.MemoryConfig(max_maps=2, max_points=64, max_keyframes=3, max_keypoints=8, keypoint_dim=4)
     e = _entry(0, cfg)
     kp = memory.Keypoints(np.ones((5, 3), np.float32), np.ones((5, 4), np.float32) / 2, np.ones(5, bool))
-    bank, m = memory.add_map(memory.empty(cfg), e.replace(keypoints=kp))
+    bank, m = _insert(memory.empty(cfg), e.replace(keypoints=kp))
     assert bank.kp_points.shape == (2, 8, 3) and int(bank.kp_valid[m].sum()) == 5
     bad = memory.Keypoints(kp.points.copy(), kp.desc, kp.valid)
     bad.points[1, 0] = np.nan
     cloud = memory.SequenceCloud(points=jnp.asarray(np.random.default_rng(0).normal(size=(100, 3)), jnp.float32),
                                  colors=jnp.zeros((100, 3), jnp.uint8), conf=jnp.ones(100), valid=jnp.ones(100, bool))
-    entry = memory.build_entry(cloud, e.kf_desc, e.kf_valid, cfg, bad)
+    entry = jax.jit(memory.build_entry, static_argnums=3)(cloud, e.kf_desc, e.kf_valid, cfg, bad)
     assert list(np.asarray(entry.keypoints.valid)) == [True, False, True, True, True]
     assert np.all(np.isfinite(np.asarray(entry.keypoints.points)))
     with pytest.raises(ValueError, match="dimension"):
@@ -387,34 +437,38 @@ def visits():
     unseen = _visit_entry(10_001, 1, 10)
     bank = memory.empty(VISIT_CFG)
     for e, _ in maps:
-        bank, _ = memory.add_map(bank, e)
+        bank, _ = _insert(bank, e)
     return bank, maps, revisit, unseen
 
 
 def test_revisit_is_recalled_verified_and_relocalised_and_new_room_rejected(visits):
+    """remember (recall, verification, update or insert), jitted and vmapped over a batch of two
+    queries: the revisit updates map 1 with a correct Sim(3), the new room becomes map 2."""
     bank, maps, (rev, rev_pfw), (new, _) = visits
     queries = jax.tree.map(lambda a, b: jnp.stack([a, b]), rev, new)
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
-    fn = jax.jit(jax.vmap(lambda e, k: memory.identify(bank, e, VISIT_CFG, k)))
-    out = fn(queries, keys)
+    banks, rep = jax.jit(jax.vmap(lambda e, k: memory.remember(bank, e, VISIT_CFG, k)))(queries, keys)
+    out = rep.identification
     assert list(np.asarray(out.map_id)) == [1, -1]
     v = jax.tree.map(lambda a: a[0], out.verification)
     assert int(v.keypoint_inliers) >= VISIT_CFG.min_keypoint_inliers and float(v.fitness) >= VISIT_CFG.min_fitness
+    assert float(v.colour_agreement) >= VISIT_CFG.min_colour_agreement
     gt = maps[1][1] @ np.linalg.inv(rev_pfw)  # query prior frame -> map prior frame
     T = np.asarray(v.transform)
     s, s_gt = np.cbrt(np.linalg.det(T[:3, :3])), np.cbrt(np.linalg.det(gt[:3, :3]))
     np.testing.assert_allclose(s, s_gt, rtol=0.05)
     dR = (T[:3, :3] / s) @ (gt[:3, :3] / s_gt).T
     assert np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))) < 3.0
-    # remember (one query at a time, jitted): the revisit updates map 1, the new room becomes map 2;
-    # its identification equals the vmapped batch's
-    remember = jax.jit(lambda b, e, k: memory.remember(b, e, VISIT_CFG, k))
-    b2, rep = remember(bank, rev, keys[0])
-    assert int(rep.map_id) == 1 and not bool(rep.created) and int(b2.visits[1]) == 2
-    assert np.all(np.isfinite(np.asarray(b2.points))) and np.all(np.isfinite(np.asarray(b2.kp_points)))
-    np.testing.assert_allclose(np.asarray(rep.transform), T, atol=1e-4)
-    b3, rep = remember(bank, new, keys[1])
-    assert int(rep.identification.map_id) == -1 and int(rep.recalled) == -1
-    np.testing.assert_allclose(np.asarray(rep.identification.verification.transform),
-                               np.asarray(out.verification.transform[1]), atol=1e-4)
-    assert int(rep.map_id) == 2 and bool(rep.created) and int(b3.num_maps) == 3
+    # the revisit updated map 1 in place (moved by the verified transform) ...
+    b0 = jax.tree.map(lambda a: a[0], banks)
+    assert list(np.asarray(rep.map_id)) == [1, 2] and list(np.asarray(rep.created)) == [False, True]
+    assert int(b0.visits[1]) == 2 and int(b0.num_maps) == 2
+    assert np.all(np.isfinite(np.asarray(b0.points))) and np.all(np.isfinite(np.asarray(b0.kp_points)))
+    np.testing.assert_allclose(np.asarray(rep.transform[0]), T, atol=1e-6)
+    # ... the new room became map 2 with the identity transform, map 1 untouched
+    b1 = jax.tree.map(lambda a: a[1], banks)
+    assert int(rep.recalled[1]) == -1 and int(b1.num_maps) == 3 and int(b1.visits[1]) == 1
+    np.testing.assert_allclose(np.asarray(rep.transform[1]), np.eye(4), atol=0)
+    np.testing.assert_array_equal(np.asarray(b1.points[1]), np.asarray(bank.points[1]))
+    np.testing.assert_allclose(np.asarray(b1.points[2]), np.asarray(_insert(bank, new)[0].points[2]),
+                               atol=1e-6)
