@@ -1,0 +1,1 @@
+"""Learned models with weights shipped inside the package (see :mod:`cm3d.models.pointnet2`)."""
