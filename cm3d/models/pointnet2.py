@@ -22,7 +22,7 @@ about gravity (any angle), a small tilt, a translation and a scale. Translation 
 removed by step 2; yaw about the camera y axis is removed *by construction*: every input of the
 network is a distance from that axis or a coordinate along it (:func:`cylindrical`), and sampling
 and grouping only use distances. Tilts (the pitch difference between two first cameras) are
-learnt by augmentation (up to 25 degrees, ``experiments/train_pointnet2.py``). The descriptor is
+learnt by augmentation (up to 5 degrees, ``experiments/train_pointnet2.py``). The descriptor is
 therefore not invariant to arbitrary 3D rotations (:func:`cm3d.ops.descriptors.cloud_descriptor`
 is, by design); no PCA canonicalisation (unstable on partial views of near-square rooms).
 
