@@ -184,3 +184,87 @@ def test_chunk_files_round_trip(video, tmp_path):
         stitch.split_chunks(seq, idx[::-1].copy(), source="x.npz")
     with pytest.raises(FileNotFoundError):
         stitch.load_chunks([tmp_path / "missing.npz"])
+
+
+def _sim3(rng, rot=0.3, trans=1.0, logs=0.2):
+    from scipy.spatial.transform import Rotation
+
+    G = np.eye(4)
+    G[:3, :3] = np.exp(rng.normal(0, logs)) * Rotation.from_rotvec(rng.normal(0, rot, 3)).as_matrix()
+    G[:3, 3] = rng.normal(0, trans, 3)
+    return G
+
+
+def test_sim3_pose_graph_closes_a_loop():
+    """Chunk transforms chained from drifting overlap constraints (rotation, translation and scale
+    drift): with a loop constraint between the last and the first chunk the pose graph spreads the
+    drift back (the loop chunk's error falls), and with exact constraints it returns the truth."""
+    rng = np.random.default_rng(0)
+    K = 6
+    G_true = [np.eye(4)]
+    for _ in range(1, K):
+        G_true.append(G_true[-1] @ _sim3(rng, 0.2, 0.5, 0.1))
+    G_true = np.stack(G_true)
+    A_true = np.stack([np.eye(4)] + [np.linalg.inv(G_true[k - 1]) @ G_true[k] for k in range(1, K)])
+    drift = _sim3(rng, 0.01, 0.02, 0.02)  # the same small error at every boundary: a drift
+    A = np.stack([np.eye(4)] + [A_true[k] @ drift for k in range(1, K)])
+    G0 = np.stack([np.linalg.multi_dot([np.eye(4)] + [A[j] for j in range(1, k + 1)]) if k else np.eye(4)
+                   for k in range(K)])
+    loop = stitch.LoopClosure(chunk=K - 1, other=0, frames=(0, 20), transform=G_true[K - 1], inliers=100, rmse=0.01)
+    G, facts = stitch.sim3_pose_graph(G0, A, [loop], stitch.PoseGraphConfig(loop_quantile=1.0))
+    err = lambda X: float(np.linalg.norm(X[K - 1][:3, 3] - G_true[K - 1][:3, 3]))  # noqa: E731
+    assert facts["loops"] == 1 and facts["cost"] < facts["cost_initial"]
+    assert err(G) < 0.5 * err(G0)
+    np.testing.assert_allclose(G[0], np.eye(4), atol=1e-12)  # the gauge
+    # exact constraints: the truth is the optimum
+    G, facts = stitch.sim3_pose_graph(G0, A_true, [loop])
+    np.testing.assert_allclose(G, G_true, atol=1e-6)
+    assert facts["cost"] < 1e-12
+    # the consistency check: this drift (5 boundaries of 0.6°, 2 cm, 2 % scale) is far beyond the
+    # overlap noise model (σ 0.01), so by default the loop is refused and the chain kept
+    G, facts = stitch.sim3_pose_graph(G0, A, [loop])
+    assert facts["loops_kept"] == 0 and facts["loop_discrepancy_max"] > facts["loop_limit"]
+    np.testing.assert_allclose(G, G0, atol=1e-9)
+    with pytest.raises(stitch.StitchError, match="distinct chunks"):
+        stitch.sim3_pose_graph(G0, A, [stitch.LoopClosure(2, 2, (0, 1), np.eye(4), 0, 0.0)])
+
+
+def test_recall_loops_from_window_records():
+    """Only accepted recalls of maps created two or more chunks earlier are loop closures, tied to
+    the creating chunk."""
+    from types import SimpleNamespace
+
+    def win(acc, rec, created, map_id, T=np.eye(4)):
+        return {"accepted": acc, "recalled_map": rec, "created_map": created, "map_id": map_id, "frames": [0, 20],
+                "transform": T.tolist(), "inlier_count": 50, "rmse": 0.01}
+
+    T = np.diag([2.0, 2.0, 2.0, 1.0])
+    results = [SimpleNamespace(windows=[win(False, -1, True, 0)]),
+               SimpleNamespace(windows=[win(True, 0, False, 0), win(False, -1, True, 1)]),  # consecutive: no loop
+               SimpleNamespace(windows=[win(False, -1, True, 2)]),
+               SimpleNamespace(windows=[win(True, 1, False, 1, T), win(True, 3, False, 3)])]  # map 3 unknown
+    loops = stitch.recall_loops(results)
+    assert [(lc.chunk, lc.other) for lc in loops] == [(3, 1)]
+    np.testing.assert_array_equal(loops[0].transform, T)
+
+
+def test_memory_sequence_result_for_the_writers(video):
+    """The whole-video result handed to the output writers: masks from the chunk each frame's image
+    comes from, windows renumbered to global frames and tagged with their chunk."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    chunks = chunks_at(video, "moderate")
+    base = stitch.stitch_chunks(chunks, refine=False)
+    H, W = chunks[0].image_size
+    fake = [SimpleNamespace(masks=np.full((c.num_frames, H, W), k % 2 == 1),
+                            windows=[{"frames": [0, c.num_frames - 1], "accepted": False}])
+            for k, c in enumerate(chunks)]
+    res = dataclasses.replace(base, method="cm3d-memory", results=tuple(fake))
+    out = stitch.memory_sequence_result(res, chunks)
+    np.testing.assert_array_equal(out.masks.any(axis=(1, 2)), res.frame_chunk % 2 == 1)
+    assert [w["chunk"] for w in out.windows] == list(range(len(chunks)))
+    assert [w["frames"][0] for w in out.windows] == [a for a, _ in res.ranges]
+    np.testing.assert_allclose(out.prior, base.sequence.cam_to_world)
+    with pytest.raises(stitch.StitchError, match="stitch_with_memory"):
+        stitch.memory_sequence_result(base, chunks)

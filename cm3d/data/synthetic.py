@@ -151,8 +151,12 @@ def _look(position, yaw, pitch, roll):
     return _pose(R, position)
 
 
-def camera_trajectory(scene: Scene, visit: int, num_frames: int, cfg: WorldConfig) -> np.ndarray:
-    """A smooth, rotating camera path (S, 4, 4) inside the free middle of the room."""
+def camera_trajectory(scene: Scene, visit: int, num_frames: int, cfg: WorldConfig, loop: bool = False) -> np.ndarray:
+    """A smooth, rotating camera path (S, 4, 4) inside the free middle of the room.
+
+    loop: a closed path instead (same scene-dependent centre, amplitudes and start): one cycle of
+    the position, the view turning away by up to ``loop_turn`` (~115°) and back, so the last frames
+    revisit the first frames' place and view (the last pose equals the first)."""
     rng = np.random.default_rng([scene.seed, visit, 1])
     t = np.arange(num_frames) / cfg.fps
     free = scene.room_half[:2] - 1.6
@@ -160,6 +164,19 @@ def camera_trajectory(scene: Scene, visit: int, num_frames: int, cfg: WorldConfi
     amp = rng.uniform(0.3, 0.6, 2) * np.minimum(free, 1.0) + 0.1
     w, ph = rng.uniform(0.25, 0.5, 2), rng.uniform(0, 2 * np.pi, 2)
     yaw0, yaw_rate = rng.uniform(0, 2 * np.pi), rng.choice([-1, 1]) * rng.uniform(0.1, 0.2)
+    if loop:
+        loop_turn = 2.0
+        u = np.arange(num_frames) / max(num_frames - 1, 1)  # 0 .. 1, the path's phase
+        poses = []
+        for ui in u:
+            a = 2 * np.pi * ui
+            xy = centre + amp * np.sin(a + ph)
+            z = 1.45 + 0.1 * np.sin(a + ph[0])
+            yaw = yaw0 + np.sign(yaw_rate) * loop_turn * np.sin(np.pi * ui)
+            pitch = -0.3 + 0.06 * np.sin(a + ph[1])
+            roll = 0.04 * np.sin(2 * a)
+            poses.append(_look(np.array([*xy, z]), yaw, pitch, roll))
+        return np.array(poses)
     poses = []
     for ti in t:
         xy = centre + amp * np.sin(w * ti + ph)
@@ -371,9 +388,11 @@ def render(prims: Primitives, cams: np.ndarray, cfg: WorldConfig):
     return rgb, np.asarray(depth), np.asarray(obj), np.asarray(flow)[:-1]
 
 
-def render_ground_truth(scene: Scene, visit: int, num_frames: int, cfg: WorldConfig = WorldConfig()):
-    """Images (S,H,W,3) uint8 and :class:`GroundTruth` of one visit of a scene."""
-    cams = camera_trajectory(scene, visit, num_frames, cfg)
+def render_ground_truth(scene: Scene, visit: int, num_frames: int, cfg: WorldConfig = WorldConfig(),
+                        loop: bool = False):
+    """Images (S,H,W,3) uint8 and :class:`GroundTruth` of one visit of a scene (``loop``: the closed
+    camera path of :func:`camera_trajectory`)."""
+    cams = camera_trajectory(scene, visit, num_frames, cfg, loop=loop)
     prims = assemble(scene, visit, cams, cfg)
     rgb, depth, obj, flow = render(prims, cams, cfg)
     K = np.broadcast_to(intrinsics(cfg), (num_frames, 3, 3)).copy()
@@ -512,14 +531,15 @@ def make_chunk_priors(images, gt: GroundTruth, chunk_size: int = 40, overlap: in
 
 def generate_long_video(scene_seed: int = 0, visit: int = 0, num_frames: int = 200, chunk_size: int = 40,
                         overlap: int = 10, level: str = "moderate",
-                        cfg: WorldConfig = WorldConfig(height=96, width=128)):
+                        cfg: WorldConfig = WorldConfig(height=96, width=128), loop: bool = False):
     """One long visit rendered once and split into overlapping VGGT-like chunks.
 
-    Returns (chunks: list of :class:`Sequence`, images (S, H, W, 3) uint8, ground truth of the whole
-    video). 200 frames at 96x128 render in ~12 s on 2 CPU cores (192x256: ~90 s).
+    loop: the camera comes back to its start (:func:`camera_trajectory`), so the last chunk revisits
+    the first chunk's place. Returns (chunks: list of :class:`Sequence`, images (S, H, W, 3) uint8,
+    ground truth of the whole video). 200 frames at 96x128 render in ~12 s on 2 CPU cores (192x256: ~90 s).
     """
     scene = make_scene(scene_seed, cfg)
-    images, gt = render_ground_truth(scene, visit, num_frames, cfg)
+    images, gt = render_ground_truth(scene, visit, num_frames, cfg, loop=loop)
     meta = {"source": "synthetic", "scene": scene_seed, "visit": visit}
     chunks = make_chunk_priors(images, gt, chunk_size, overlap, level, seed=scene_seed * 1009 + visit,
                                timestamps=np.arange(num_frames) / cfg.fps, meta=meta)
