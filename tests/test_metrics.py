@@ -425,3 +425,41 @@ def test_import_does_not_load_heavy_modules():
         "assert not bad, bad"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_depth_metrics_median_against_numpy():
+    from cm3d.eval.metrics import depth_metrics_median
+
+    rng = np.random.default_rng(5)
+    gt = rng.uniform(0.5, 5.0, (3, 8, 9))
+    gt[0, 0, :4] = 0.0  # no ground truth there
+    pred = 0.37 * gt * np.exp(rng.normal(0, 0.15, gt.shape))
+    pred[1, 2, 3] = -1.0  # a non-positive prediction does not count
+    valid = rng.random(gt.shape) > 0.2
+    m = valid & (gt > 0) & (pred > 0)
+    s = np.median(gt[m]) / np.median(pred[m])
+    a, g = s * pred[m], gt[m]
+    got = jax.jit(depth_metrics_median)(pred, gt, valid)
+    assert float(got["scale"]) == pytest.approx(s, rel=1e-6)
+    assert float(got["abs_rel"]) == pytest.approx(np.mean(np.abs(a - g) / g), rel=1e-5)
+    assert float(got["delta1"]) == pytest.approx(np.mean(np.maximum(a / g, g / a) < 1.25), abs=1e-6)
+    exact = depth_metrics_median(3.0 * gt, gt)  # a pure scale is removed exactly
+    assert float(exact["abs_rel"]) == pytest.approx(0.0, abs=1e-6) and float(exact["delta1"]) == 1.0
+
+
+def test_estimate_normals_match_open3d():
+    import open3d as o3d
+
+    from cm3d.eval.metrics import estimate_normals
+
+    rng = np.random.default_rng(6)
+    # a curved, noisy surface patch: normals vary from point to point
+    xy = rng.uniform(-1, 1, (600, 2))
+    pts = np.c_[xy, 0.3 * np.sin(2 * xy[:, 0]) + 0.2 * xy[:, 1] ** 2 + rng.normal(0, 0.003, 600)]
+    got = estimate_normals(pts, k=16)
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(16))
+    ref = np.asarray(pc.normals)
+    cos = np.abs(np.sum(got * ref, -1))
+    assert np.allclose(np.linalg.norm(got, axis=-1), 1.0)
+    assert np.median(cos) > 0.9999 and np.mean(cos > 0.999) > 0.98

@@ -391,3 +391,43 @@ def reconstruction_metrics(pred_pts, gt_pts, pred_normals=None, gt_normals=None)
         nc_comp = np.mean(np.abs(np.sum(ngt * npred[i_comp], axis=-1)))
         out["normal_consistency"] = float(0.5 * (nc_acc + nc_comp))
     return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Additions for the paper-table experiments: median-scaled depth, point-cloud normals
+# ----------------------------------------------------------------------------------------------
+
+
+def depth_metrics_median(pred, gt, valid=None) -> dict:
+    """Depth errors after per-sequence *median scale* alignment (the video-depth protocol of
+    Table 1): ``a = s * pred`` with ``s = median(gt) / median(pred)`` over the pixels that count
+    (valid, ``gt > 0``, finite, ``pred > 0``) -> dict(abs_rel, delta1, scale) scalars.
+
+    pred, gt: (S, H, W) depths; valid: optional bool mask (S, H, W). abs_rel and delta1 as in
+    :func:`depth_metrics` with ``align=False`` on the scaled prediction. NaN when no pixel counts.
+    Jittable (the masked median is a NaN-median over a fixed shape).
+    """
+    pred = jnp.asarray(pred)
+    gt = jnp.asarray(gt, dtype=pred.dtype)
+    m = _depth_mask(pred, gt, valid) & (pred > 0)
+    scale = jnp.nanmedian(jnp.where(m, gt, jnp.nan)) / jnp.nanmedian(jnp.where(m, pred, jnp.nan))
+    out = depth_metrics(scale * pred, gt, m, align=False)
+    return {**out, "scale": scale}
+
+
+def estimate_normals(points, k: int = 16) -> np.ndarray:
+    """Unoriented PCA normals (N, 3) of a point cloud (N, 3) (host): the eigenvector of the smallest
+    eigenvalue of the covariance of each point's ``k`` nearest neighbours (itself included), as
+    Open3D's ``estimate_normals(KDTreeSearchParamKNN(k))`` up to sign."""
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(pts) < 3:
+        raise ValueError(f"estimate_normals: needs at least 3 points, got {len(pts)}")
+    k = int(min(max(k, 3), len(pts)))
+    _, idx = cKDTree(pts).query(pts, k=k)
+    nb = pts[idx]
+    d = nb - nb.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", d, d) / k
+    _, vecs = np.linalg.eigh(cov)
+    return vecs[:, :, 0]
