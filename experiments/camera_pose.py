@@ -197,17 +197,21 @@ def format_table(rows) -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def parse_args(doc: str):
+    """The command line shared by the paper-table scripts: (args, use_cache, world config, scenes, frames)."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
     ap.add_argument("--scenes", type=int, default=3, help="scenes 0 .. N-1, two visits each")
     ap.add_argument("--frames", type=int, default=40, help="frames per visit")
     ap.add_argument("--quick", action="store_true", help="48x64, one scene, 8 frames per visit (a smoke test)")
     ap.add_argument("--json", default=None, metavar="PATH")
     ap.add_argument("--no-cache", action="store_true", help="render again instead of using ~/.cache/cm3d/paper_tables")
     args = ap.parse_args()
-    use_cache = not (args.quick or args.no_cache)
-    wcfg = world_config(args.quick)
     scenes, frames = (1, 8) if args.quick else (args.scenes, args.frames)
+    return args, not (args.quick or args.no_cache), world_config(args.quick), scenes, frames
+
+
+def main() -> None:
+    args, use_cache, wcfg, scenes, frames = parse_args(__doc__)
     print(f"{scenes} scene(s) x 2 visits x {frames} frames at {wcfg.height}x{wcfg.width}, {LEVEL} prior noise; "
           f"visit 1 fills the memory, the table is about visit 2 (the revisit)")
     t0 = time.perf_counter()

@@ -39,12 +39,11 @@ import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # OpenBLAS threads spin on shared cores
 
-import argparse  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from camera_pose import LEVEL, revisit_runs, world_config  # noqa: E402
+from camera_pose import LEVEL, parse_args, revisit_runs  # noqa: E402
 from cm3d.outputs import write_json  # noqa: E402
 
 VARIANTS = ("no_memory", "memory", "update")
@@ -169,16 +168,7 @@ def format_table(rows) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", type=int, default=3, help="scenes 0 .. N-1, two visits each")
-    ap.add_argument("--frames", type=int, default=40, help="frames per visit")
-    ap.add_argument("--quick", action="store_true", help="48x64, one scene, 8 frames per visit (a smoke test)")
-    ap.add_argument("--json", default=None, metavar="PATH")
-    ap.add_argument("--no-cache", action="store_true", help="render again instead of using ~/.cache/cm3d/paper_tables")
-    args = ap.parse_args()
-    use_cache = not (args.quick or args.no_cache)
-    wcfg = world_config(args.quick)
-    scenes, frames = (1, 8) if args.quick else (args.scenes, args.frames)
+    args, use_cache, wcfg, scenes, frames = parse_args(__doc__)
     print(f"{scenes} scene(s) x 2 visits x {frames} frames at {wcfg.height}x{wcfg.width}, {LEVEL} prior noise; "
           f"visit 1 fills the memory, the table is about the revisit's map")
     t0 = time.perf_counter()
