@@ -210,6 +210,19 @@ def parse_args(doc: str):
     return args, not (args.quick or args.no_cache), world_config(args.quick), scenes, frames
 
 
+def mean_figures(rows, keys) -> dict:
+    """The mean of each key over the per-scene rows (the scripts' headline figures)."""
+    return {k: float(np.mean([r[k] for r in rows])) for k in keys}
+
+
+def write_figures(args, figures: dict, scenes: int, frames: int, wcfg) -> None:
+    """Add the run's setting to the headline figures and write them when ``--json`` was given."""
+    figures |= {"scenes": scenes, "frames": frames, "height": wcfg.height, "width": wcfg.width,
+                "quick": bool(args.quick)}
+    if args.json:
+        write_json(args.json, figures)
+
+
 def main() -> None:
     args, use_cache, wcfg, scenes, frames = parse_args(__doc__)
     print(f"{scenes} scene(s) x 2 visits x {frames} frames at {wcfg.height}x{wcfg.width}, {LEVEL} prior noise; "
@@ -219,13 +232,9 @@ def main() -> None:
     for s in range(scenes):
         rows.append(scene_row(s, frames, wcfg, args.quick, use_cache))
         print(f"  scene {s} done ({time.perf_counter() - t0:.0f} s)", flush=True)
-    figures = {}
-    for m in METHODS:
-        for k in ("ate", "rpe_trans", "rpe_rot"):
-            figures[f"{k}_{m}"] = float(np.mean([r[f"{k}_{m}"] for r in rows]))
-    figures["recalled"] = float(np.mean([r["recalled"] for r in rows]))
-    mean = {"scene": "mean", **figures, "pnp_ok": float(np.mean([r["pnp_ok"] for r in rows])),
-            "memory_landmarks": float(np.mean([r["memory_landmarks"] for r in rows]))}
+    figures = mean_figures(rows, [f"{k}_{m}" for m in METHODS for k in ("ate", "rpe_trans", "rpe_rot")]
+                           + ["recalled"])
+    mean = {"scene": "mean", **figures, **mean_figures(rows, ["pnp_ok", "memory_landmarks"])}
     print("\nrevisit (visit 2): ATE / RPE trans in metres (Sim3-aligned), RPE rot in degrees; mem lm: memory "
           "landmarks used by the factor graph; PnP ok: share of frames PnP solved (others keep the prior)\n")
     print(format_table(rows + [mean]))
@@ -234,10 +243,8 @@ def main() -> None:
         f"{m} {100 * (figures['ate_' + m] - a) / a:+.1f} %" for m in METHODS[1:]))
     print("visit 1 (fills the memory), ATE prior -> cm3d: " + ", ".join(
         f"scene {r['scene']} {r['ate_visit1_prior']:.5f} -> {r['ate_visit1_cm3d']:.5f}" for r in rows))
-    figures |= {"scenes": scenes, "frames": frames, "height": wcfg.height, "width": wcfg.width,
-                "pnp_ok": mean["pnp_ok"], "quick": bool(args.quick)}
-    if args.json:
-        write_json(args.json, figures)
+    figures["pnp_ok"] = mean["pnp_ok"]
+    write_figures(args, figures, scenes, frames, wcfg)
 
 
 if __name__ == "__main__":

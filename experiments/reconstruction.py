@@ -43,8 +43,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from camera_pose import LEVEL, parse_args, revisit_runs  # noqa: E402
-from cm3d.outputs import write_json  # noqa: E402
+from camera_pose import LEVEL, mean_figures, parse_args, revisit_runs, write_figures  # noqa: E402
 
 VARIANTS = ("no_memory", "memory", "update")
 
@@ -176,19 +175,12 @@ def main() -> None:
     for s in range(scenes):
         rows.append(scene_rows(s, frames, wcfg, args.quick, use_cache))
         print(f"  scene {s} done ({time.perf_counter() - t0:.0f} s)", flush=True)
-    figures = {}
-    for v in VARIANTS:
-        for k in ("acc", "comp", "nc"):
-            figures[f"{k}_{v}"] = float(np.mean([r[f"{k}_{v}"] for r in rows]))
-    figures["recalled"] = float(np.mean([r["recalled"] for r in rows]))
-    mean = {"scene": "mean", **figures, **{f"points_{v}": np.mean([r[f"points_{v}"] for r in rows]) for v in VARIANTS}}
+    figures = mean_figures(rows, [f"{k}_{v}" for v in VARIANTS for k in ("acc", "comp", "nc")] + ["recalled"])
+    mean = {"scene": "mean", **figures, **mean_figures(rows, [f"points_{v}" for v in VARIANTS])}
     print("\nAcc / Comp in metres (lower is better), NC (higher is better), after each run's per-pixel Sim(3) "
           "alignment and a common voxel downsampling; ground truth: the static surface both visits saw\n")
     print(format_table(rows + [mean]))
-    figures |= {"scenes": scenes, "frames": frames, "height": wcfg.height, "width": wcfg.width,
-                "quick": bool(args.quick)}
-    if args.json:
-        write_json(args.json, figures)
+    write_figures(args, figures, scenes, frames, wcfg)
 
 
 if __name__ == "__main__":

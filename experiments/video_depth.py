@@ -36,8 +36,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from camera_pose import LEVEL, parse_args, revisit_runs  # noqa: E402
-from cm3d.outputs import write_json  # noqa: E402
+from camera_pose import LEVEL, mean_figures, parse_args, revisit_runs, write_figures  # noqa: E402
 
 VARIANTS = ("prior", "prior_map", "refined")
 
@@ -100,11 +99,7 @@ def main() -> None:
         for v, (seq, res) in enumerate(zip(run["seqs"], run["res_mem"])):
             rows.append(visit_row(s, v + 1, seq, res, opts))
         print(f"  scene {s} done ({time.perf_counter() - t0:.0f} s)", flush=True)
-    figures = {}
-    for name in VARIANTS:
-        for k in ("absrel", "delta1"):
-            figures[f"{k}_{name}"] = float(np.mean([r[f"{k}_{name}"] for r in rows]))
-    figures["coverage"] = float(np.mean([r["coverage"] for r in rows]))
+    figures = mean_figures(rows, [f"{k}_{name}" for name in VARIANTS for k in ("absrel", "delta1")] + ["coverage"])
     figures["fps_backend"] = float(np.median(fps))
     print("\nAbs Rel / δ<1.25 after per-sequence median scaling, on ground-truth static pixels covered by the "
           "map renders; prior map: the same map fused with the prior poses\n")
@@ -112,10 +107,7 @@ def main() -> None:
                                 **figures}]))
     print(f"\nback end: {figures['fps_backend']:.1f} frames/s at {wcfg.height}x{wcfg.width} (revisit, compiled; "
           f"per scene: {', '.join(f'{f:.1f}' for f in fps)})")
-    figures |= {"scenes": scenes, "frames": frames, "height": wcfg.height, "width": wcfg.width,
-                "quick": bool(args.quick)}
-    if args.json:
-        write_json(args.json, figures)
+    write_figures(args, figures, scenes, frames, wcfg)
 
 
 if __name__ == "__main__":
