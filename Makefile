@@ -21,7 +21,7 @@ demo: setup
 	$(VENV)/bin/cm3d demo
 
 test: setup
-	$(VENV)/bin/python -m pytest -n auto
+	$(VENV)/bin/python -m pytest -n auto --dist worksteal
 
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis

@@ -24,3 +24,15 @@ def shared_data() -> Path:
     path = Path(os.environ.get("CM3D_SHARED_DATA", ROOT.parent / "shared" / "data"))
     assert path.is_dir(), f"shared test data not found at {path}; set CM3D_SHARED_DATA"
     return path
+
+
+# The slowest modules first (each holds tests of 15-80 s: compiled pipelines, experiment smoke
+# runs), so that the xdist workers, which steal work from each other (``--dist worksteal``), end
+# together instead of one worker finishing a long test alone at the end of the run.
+SLOW_FIRST = ("test_sweep.py", "test_experiments.py", "test_cli.py", "test_pipeline.py", "test_align.py",
+              "test_lm.py", "test_memory.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(SLOW_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(SLOW_FIRST)))
