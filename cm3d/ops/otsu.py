@@ -10,7 +10,9 @@ A ``valid`` mask restricts the histogram to some elements (scikit-image on ``x[v
 non-finite values are always left out. Graceful paths instead of errors, all NaN-free: a single
 distinct value returns that value (as scikit-image does), and no valid element returns 0.
 Integer images: scikit-image gives every integer its own bin there, so compare on
-``x.astype(np.float32)``. float64 input is computed in float32 unless x64 is enabled.
+``x.astype(np.float32)``. float64 input is computed in float32 unless x64 is enabled. Subnormal
+values (|x| < 1.2e-38 in float32) count as 0: XLA flushes them to zero on CPU and GPU, so one next
+to a bin edge at 0 can land one bin higher than in NumPy.
 """
 
 from __future__ import annotations
