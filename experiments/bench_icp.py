@@ -1,6 +1,6 @@
 """ICP, voxel downsampling and global registration: cm3d (JAX, CPU) against Open3D and small_gicp.
 
-    .venv/bin/python experiments/bench_icp.py [--sizes 5000 20000 100000] [--reps 3] [--quick] [--json PATH]
+    .venv/bin/python experiments/bench_icp.py [--sizes 5000 20000 100000] [--reps 3] [--median] [--quick] [--json PATH]
 
 Room-like clouds (floor, ceiling, walls, boxes; source and target sampled independently), a
 3 deg / 11 cm offset, max correspondence distance 0.3 m, same inputs for every method. For each size
@@ -92,6 +92,9 @@ def make_pair(n, seed):
     return ((src - T[:3, 3]) @ T[:3, :3]).astype(np.float32), tgt, T
 
 
+STAT = min  # --median: the median of the repetitions instead of the best (a loaded machine)
+
+
 def best_of(fn, reps):
     ts = []
     out = None
@@ -100,7 +103,7 @@ def best_of(fn, reps):
         out = fn()
         jax.block_until_ready(out)
         ts.append(time.perf_counter() - t0)
-    return min(ts), out
+    return float(STAT(ts)), out
 
 
 def err(T, T_gt):
@@ -115,8 +118,11 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="20k points, to convergence, 1 repetition, no batch")
     ap.add_argument("--global-trials", type=int, default=2, help="random poses per synthetic pair")
     ap.add_argument("--gpu", action="store_true", help="the accelerator section (default when JAX runs on a GPU)")
+    ap.add_argument("--median", action="store_true", help="report the median of the repetitions, not the best")
     ap.add_argument("--json", default=None, metavar="PATH")
     args = ap.parse_args()
+    global STAT
+    STAT = np.median if args.median else min
     if args.gpu or jax.default_backend() == "gpu":
         figures = bench_gpu(args)
         if args.json:
@@ -132,7 +138,7 @@ def main() -> None:
     run = jax.jit(icp, static_argnames="options")
     figures = {}
     print(f"jax {jax.__version__} on {jax.devices()[0].platform}, open3d {o3d.__version__}, max corr {R} m, "
-          f"times in ms (best of {reps}), ratio = cm3d / peer; '+build': cm3d including its index build "
+          f"times in ms ({'median' if args.median else 'best'} of {reps}), ratio = cm3d / peer; '+build': cm3d including its index build "
           f"(grid, 16-NN graph, PCA normals), 'o3d+n': Open3D including its target normals (p2l; its "
           f"KD-tree is built inside registration_icp), r_bld = +build / o3d+n")
     hdr = (f"{'n':>7} {'method':>6} {'mode':>6} | {'cm3d':>7} {'+build':>7} {'open3d':>7} {'o3d+n':>7} {'sgicp':>7} | "

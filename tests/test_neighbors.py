@@ -22,6 +22,7 @@ from cm3d.ops.neighbors import (
     walk,
     walk_to_convergence,
 )
+from cm3d.ops.voxel import cell_coords, hash_lookup
 
 N, R = 3000, 0.3
 _build = jax.jit(build_target_index, static_argnames=("radius",))
@@ -123,8 +124,10 @@ def test_walk_then_certified_search_is_exact():
         m, d2 = walk_to_convergence(index, q2, m)
         return early, first, exact_nearest(index, q2, m, d2, active, 0.2, cache)[:3]  # reuses the cache
 
-    # crowded blocks (plane intersections) overflow the exact-search tables: exercised below
+    # crowded blocks (plane intersections) overflow the exact-search tables, and queries in empty fine
+    # cells (no stored table row) gather theirs from the fine grid: both exercised below
     assert int(index.truncated) > 0 and int(jnp.sum(index.block_total > index.block_cand.shape[1])) > 0
+    assert int(jnp.sum(hash_lookup(index.fine, cell_coords(q, index.origin, index.fine_cell)) < 0)) > 0
     tree = cKDTree(p)
     early, first, second = run(index, q, q2)
     for (pos, d2, searched), qq, most in zip((early, first, second), (q, q, q2), (N, N // 2, int(first[2]) // 2)):

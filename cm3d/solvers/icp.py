@@ -36,7 +36,6 @@ from jax import lax
 from cm3d.ops.neighbors import (
     TargetIndex,
     build_target_index,
-    empty_cache,
     exact_nearest,
     seed,
     walk,
@@ -117,7 +116,9 @@ class ICPResult:
 
 
 def _apply(T, p):
-    return p @ T[:3, :3].T + T[:3, 3]
+    """T (4, 4) applied to points p (N, 3), as broadcast multiply-adds (XLA CPU runs an (N, 3) x
+    (3, 3) matmul ~10x slower)."""
+    return p[:, 0:1] * T[:3, 0] + p[:, 1:2] * T[:3, 1] + p[:, 2:3] * T[:3, 2] + T[:3, 3]
 
 
 def _stats(d2, inl, nvalid):
@@ -202,36 +203,36 @@ def icp(source, index: TargetIndex, init=None, valid=None, options: ICPOptions =
                          inlier_rmse=z, iterations=jnp.int32(0), converged=jnp.bool_(True),
                          exact_searches=jnp.int32(0))
 
-    def update(T, src, m, inl):
-        q = _apply(T, src)
+    def update(T, q, m, inl):
+        """The next transform from the correspondences of q = T src (N, 3) to the matches m."""
         mc = jnp.clip(m, 0)
         p = index.points[mc]
         if o.method == "point_to_plane":
-            return point_to_plane_update(q, p, index.normals[mc], inl, o) @ T
-        return _update_point_to_point(q, p, inl, o) @ T
+            return point_to_plane_update(q, p, index.normals[mc], inl, o)
+        return _update_point_to_point(q, p, inl, o)
 
     def walk_phase(src, sv, T0, tol, max_it):
         """Seed, walk to a local minimum, then iterate (update, walk) until fitness and RMSE change
         by less than ``tol`` x the thresholds (or ``max_it`` iterations)."""
         nv = jnp.sum(sv)
         q = _apply(T0, src)
-        m, d2 = walk_to_convergence(index, q, seed(index, q, sv), o.seed_steps)
+        m, d2, moved = walk_to_convergence(index, q, seed(index, q, sv), o.seed_steps, return_moved=True)
         fit, rmse, _ = _stats(d2, sv & (m >= 0) & (d2 <= r2), nv)
 
         def cond(c):
-            return (c[5] < max_it) & ~c[6]
+            return (c[7] < max_it) & ~c[8]
 
         def body(c):
-            T, m, d2, fit, rmse, it, _ = c
-            T = update(T, src, m, sv & (m >= 0) & (d2 <= r2))
+            T, q, m, d2, moved, fit, rmse, it, _ = c
+            T = update(T, q, m, sv & (m >= 0) & (d2 <= r2)) @ T
             q = _apply(T, src)
             for _ in range(o.walk_steps):
-                m, d2, _ = walk(index, q, m)
+                m, d2, moved = walk(index, q, m)
             fit2, rmse2, _ = _stats(d2, sv & (m >= 0) & (d2 <= r2), nv)
             done = (jnp.abs(fit2 - fit) < o.relative_fitness * tol) & (jnp.abs(rmse2 - rmse) < o.relative_rmse * tol)
-            return T, m, d2, fit2, rmse2, it + 1, done
+            return T, q, m, d2, moved, fit2, rmse2, it + 1, done
 
-        return lax.while_loop(cond, body, (T0, m, d2, fit, rmse, jnp.int32(0), jnp.bool_(False)))
+        return lax.while_loop(cond, body, (T0, q, m, d2, moved, fit, rmse, jnp.int32(0), jnp.bool_(False)))
 
     # Coarse stages: the same ICP on every s^l-th source point, coarsest first, each to
     # walk_tolerance x the thresholds with at most half the iterations left, brings T close at a
@@ -245,19 +246,25 @@ def icp(source, index: TargetIndex, init=None, valid=None, options: ICPOptions =
         T0, *_, it_l, _ = walk_phase(src[::st], sv[::st], T0, o.walk_tolerance, (o.max_iterations - it0) // 2)
         it0 = it0 + it_l
     tol = o.walk_tolerance if o.exact_iterations else 1.0
-    T, m, d2, fit, rmse, it, done = walk_phase(src, sv, T0, tol, o.max_iterations - it0)
+    T, q, m, d2, moved, fit, rmse, it, done = walk_phase(src, sv, T0, tol, o.max_iterations - it0)
     it = it + it0
 
     # Exact phase: the walk may stop at a local minimum of the k-NN graph, so the last iterations
     # use exact correspondences (certified walk matches, grid search for the rest) to reach the
     # fixed point of exact ICP (Open3D's).
-    def exact_match(T, m, d2, cache):
-        q = _apply(T, src)
-        m, d2, moved = walk(index, q, m)  # certificates need m's own list scanned: moved ones are searched
+    def exact_match(q, m, d2, moved, cache):
+        # certificates need m's own list scanned: matches the last walk step moved are searched
         pos, dd2, searched, cache = exact_nearest(index, q, m, d2, sv, r, cache, settled=~moved)
         return jnp.where(pos >= 0, pos, m), jnp.where(pos >= 0, dd2, d2), pos, dd2, searched, cache
 
-    m, d2, pos, dd2, searched, cache = exact_match(T, m, d2, empty_cache(src))
+    # the walk phase's last step ran at T: its matches and their moved flags are current
+    m, d2, pos, dd2, searched, cache = exact_match(q, m, d2, moved, None)
+    if o.exact_iterations == 0:  # walk only: the exact statistics at the final transform
+        inl = sv & (pos >= 0)
+        fit, rmse, cnt = _stats(jnp.where(inl, dd2, 0.0), inl, nvalid)
+        return ICPResult(transform=T, scale=jnp.cbrt(jnp.linalg.det(T[:3, :3])), fitness=fit,
+                         inlier_count=cnt.astype(jnp.int32), inlier_rmse=rmse, iterations=it, converged=done,
+                         exact_searches=searched)
     inl = sv & (pos >= 0)
     fit, rmse, _ = _stats(jnp.where(inl, dd2, 0.0), inl, nvalid)
 
@@ -265,16 +272,18 @@ def icp(source, index: TargetIndex, init=None, valid=None, options: ICPOptions =
         return (c[-3] < o.exact_iterations) & ~c[-2] & (c[-1] < o.max_iterations)
 
     def body_x(c):
-        T, m, d2, pos, dd2, fit, rmse, searched, cache, k, _, it = c
-        T = update(T, src, pos, sv & (pos >= 0))
-        m, d2, pos, dd2, s2, cache = exact_match(T, m, d2, cache)
+        T, q, m, d2, pos, dd2, fit, rmse, searched, cache, k, _, it = c
+        T = update(T, q, pos, sv & (pos >= 0)) @ T
+        q = _apply(T, src)
+        m, d2, moved = walk(index, q, m)
+        m, d2, pos, dd2, s2, cache = exact_match(q, m, d2, moved, cache)
         inl = sv & (pos >= 0)
         fit2, rmse2, _ = _stats(jnp.where(inl, dd2, 0.0), inl, nvalid)
         done = (jnp.abs(fit2 - fit) < o.relative_fitness) & (jnp.abs(rmse2 - rmse) < o.relative_rmse)
-        return T, m, d2, pos, dd2, fit2, rmse2, searched + s2, cache, k + 1, done, it + 1
+        return T, q, m, d2, pos, dd2, fit2, rmse2, searched + s2, cache, k + 1, done, it + 1
 
-    init_x = (T, m, d2, pos, dd2, fit, rmse, searched, cache, jnp.int32(0), jnp.bool_(False), it)
-    T, m, d2, pos, dd2, fit, rmse, searched, _, k, done_x, it = lax.while_loop(cond_x, body_x, init_x)
+    init_x = (T, q, m, d2, pos, dd2, fit, rmse, searched, cache, jnp.int32(0), jnp.bool_(False), it)
+    T, q, m, d2, pos, dd2, fit, rmse, searched, _, k, done_x, it = lax.while_loop(cond_x, body_x, init_x)
     inl = sv & (pos >= 0)
     fit, rmse, cnt = _stats(jnp.where(inl, dd2, 0.0), inl, nvalid)
     scale = jnp.cbrt(jnp.linalg.det(T[:3, :3]))
