@@ -10,7 +10,9 @@ descriptors ``kf_desc`` with hash codes ``kf_codes``. The *global feature table*
 are kept sorted by grid cell (:func:`sort_by_cell`) for neighbour search by binary search.
 
 Recognition (:func:`identify`, pure and vmappable over queries): hashed 2D :func:`recall` of
-``top_k`` candidates -> keypoint matching + Sim(3) RANSAC per candidate -> Sim(3) ICP of the best,
+``top_k`` candidates -> keypoint matching + Sim(3) RANSAC per candidate (3-point hypotheses, and
+2-point hypotheses about both frames' estimated up axes: :func:`up_axis`, :func:`upright_pairs`)
+-> of the best candidate's poses, the one with the most colour-consistent overlap -> Sim(3) ICP,
 accepted on keypoint inliers, ICP inlier count / fitness / RMSE and colour agreement
 (:func:`verify`). :func:`remember` then updates the recalled map (:func:`update_map`) or stores a
 new one. Every visit has its own unknown scale, so all transforms are Sim(3).
@@ -80,13 +82,18 @@ class MemoryConfig:
     pixel_stride: int = 4  # static points: every stride-th pixel
     # verification thresholds: tuned on the tuning split of experiments/memory_recall.py (never on its test split)
     min_fitness: float = 0.15  # verification: share of the query's ICP points with a map point nearby
-    max_rmse: float = 0.75  # verification: ICP inlier RMSE, in map voxels
+    max_rmse: float = 0.775  # verification: ICP inlier RMSE, in map voxels
     normal_radius: float = 0.2  # neighbourhood cell for map normals (map units: VGGT-normalised)
     min_inliers: int = 38  # verification: absolute number of ICP inliers
     max_keypoints: int = 512  # 3D keypoints (local descriptors lifted to the map frame) per map
     keypoint_dim: int = 128  # local descriptor size (RootSIFT)
     ratio: float = 0.85  # keypoint matching: Lowe ratio against the best match elsewhere in 3D
     ransac_hypotheses: int = 256  # Sim(3) RANSAC: 3-point hypotheses per candidate
+    upright_hypotheses: int = 128  # + 2-point hypotheses with both frames' up axes known (0: off; see upright_pairs)
+    up_prior: tuple[float, float, float] = (0.0, -1.0, 0.0)  # a camera's rough up (OpenCV: -y) in its own frame
+    up_max_angle: float = 35.0  # degrees: normals this close to up_prior vote for the up axis (floor, ceiling)
+    ransac_scored: int = 128  # RANSAC scores at most this many matches (one per query keypoint cluster)
+    screen_points: int = 64  # query voxels that pick between the RANSAC poses by colour-consistent overlap
     ransac_distance: float = 2.0  # keypoint inlier distance, in map voxels
     min_keypoint_inliers: int = 6  # verification: RANSAC inliers, distinct 3D points (keypoint_clusters)
     loose_descriptor: float = 0.6  # RANSAC scoring also counts mutual matches (no ratio test) below this L2
@@ -95,7 +102,7 @@ class MemoryConfig:
     icp_points: int = 256  # query voxels used by the verifying ICP (an even subsample)
     icp_iterations: int = 5
     max_colour_difference: float = 40.0  # RGB (0-255) distance for a colour-consistent ICP inlier
-    min_colour_agreement: float = 0.75  # verification: share of colour-consistent ICP inliers
+    min_colour_agreement: float = 0.725  # verification: share of colour-consistent ICP inliers
     grid_per_cell: int = 3  # ICP neighbour search: points looked at per grid cell (see GRID_CELL)
     verification: str = "full"  # "none" (2D recall only), "keypoints" (+ 3D RANSAC), "full" (+ ICP)
 
@@ -113,6 +120,12 @@ class MemoryConfig:
             raise ValueError("MemoryConfig: top_k, max_maps, max_points and max_keyframes must be >= 1")
         if self.max_keypoints < 3 or self.icp_points < 3 or self.ransac_hypotheses < 1:
             raise ValueError("MemoryConfig: max_keypoints and icp_points must be >= 3, ransac_hypotheses >= 1")
+        if self.upright_hypotheses < 0:
+            raise ValueError(f"MemoryConfig.upright_hypotheses: must be >= 0, got {self.upright_hypotheses}")
+        if len(self.up_prior) != 3 or not 0 < float(np.linalg.norm(self.up_prior)) < np.inf:
+            raise ValueError(f"MemoryConfig.up_prior: need a non-zero 3-vector, got {self.up_prior}")
+        if not 0 < self.up_max_angle < 90:
+            raise ValueError(f"MemoryConfig.up_max_angle: need 0 < degrees < 90, got {self.up_max_angle}")
         if not 0 < self.scale_range[0] < self.scale_range[1]:
             raise ValueError(f"MemoryConfig.scale_range: need 0 < lo < hi, got {self.scale_range}")
 
@@ -538,6 +551,65 @@ def distinct_count(mask, cluster):
     return jnp.sum(hit, -1)
 
 
+def up_axis(normals, valid, prior=(0.0, -1.0, 0.0), max_angle: float = 35.0):
+    """The up (gravity) axis (3,) of a cloud in its own frame, from its normals (N, 3): the principal
+    direction of the unit normals within ``max_angle`` degrees of ``prior`` (up or down: floor, ceiling,
+    table tops), signed like ``prior``; ``prior`` (normalised) when fewer than 3 normals qualify.
+    A camera held roughly upright (the first camera defines a visit's frame) makes the prior good to a
+    few tens of degrees; the floor and ceiling make the estimate good to about a degree."""
+    normals = jnp.asarray(normals, jnp.float32)
+    prior = jnp.asarray(prior, jnp.float32)
+    prior = prior / jnp.linalg.norm(prior)
+    unit = jnp.abs(jnp.sum(normals**2, -1) - 1.0) < 0.1
+    near = jnp.abs(normals @ prior) > np.cos(np.radians(max_angle))
+    w = (jnp.asarray(valid, bool) & unit & near).astype(jnp.float32)
+    _, vecs = jnp.linalg.eigh(jnp.einsum("n,ni,nj->ij", w, normals, normals))
+    u = vecs[:, -1]
+    u = jnp.where(u @ prior < 0, -u, u)
+    return jnp.where(jnp.sum(w) >= 3, u, prior)
+
+
+def upright_frame(up):
+    """A rotation (3, 3) whose last row is the unit ``up`` (rows: x, y, up; right-handed): it maps a
+    frame's points to coordinates where up is +z, so two such frames differ by a yaw about z."""
+    up = up / jnp.maximum(jnp.linalg.norm(up), 1e-12)
+    e = jnp.where(jnp.abs(up[0]) < 0.9, jnp.array([1.0, 0.0, 0.0], up.dtype), jnp.array([0.0, 1.0, 0.0], up.dtype))
+    x = e - (e @ up) * up
+    x = x / jnp.linalg.norm(x)
+    return jnp.stack([x, jnp.cross(up, x), up])
+
+
+def upright_pairs(src, dst, ok, key, num_hypotheses: int, frame_src, frame_dst, min_separation, scale_range):
+    """Sim(3) hypotheses from *two* correspondences each, for frames whose up axes are known
+    (``frame_*`` = :func:`upright_frame`): the rotation is then a yaw about up, so a pair fixes yaw
+    (horizontal direction of the pair), scale (its length ratio) and translation. Pairs closer than
+    ``min_separation`` (src units), nearly vertical, or whose horizontal / vertical extents disagree
+    with the scale by more than 15% are inconsistent. With few right matches among many this finds a
+    pose far more often than 3-point samples (a right pair is ~1/w times likelier than a right triple).
+    Returns (s, R, t, consistent) with a leading (num_hypotheses,) axis."""
+    src, dst, ok = jnp.asarray(src, jnp.float32), jnp.asarray(dst, jnp.float32), jnp.asarray(ok, bool)
+    n_ok = jnp.sum(ok)
+    order = jnp.argsort(~ok, stable=True)
+    idx = order[jax.random.randint(key, (num_hypotheses, 2), 0, jnp.maximum(n_ok, 1))]
+    a = jnp.einsum("ij,hkj->hki", frame_src, src[idx])  # (H, 2, 3) upright coordinates
+    b = jnp.einsum("ij,hkj->hki", frame_dst, dst[idx])
+    da, db = a[:, 1] - a[:, 0], b[:, 1] - b[:, 0]
+    la, lb = jnp.linalg.norm(da, axis=-1), jnp.linalg.norm(db, axis=-1)
+    ha, hb = jnp.linalg.norm(da[:, :2], axis=-1), jnp.linalg.norm(db[:, :2], axis=-1)
+    s = lb / jnp.maximum(la, 1e-12)
+    yaw = jnp.arctan2(db[:, 1], db[:, 0]) - jnp.arctan2(da[:, 1], da[:, 0])
+    c, si = jnp.cos(yaw), jnp.sin(yaw)
+    zero, one = jnp.zeros_like(c), jnp.ones_like(c)
+    Rz = jnp.stack([jnp.stack([c, -si, zero], -1), jnp.stack([si, c, zero], -1), jnp.stack([zero, zero, one], -1)], -2)
+    R = jnp.einsum("ji,hjk,kl->hil", frame_dst, Rz, frame_src)  # frame_dst^T Rz frame_src
+    t = jnp.mean(dst[idx], 1) - s[:, None] * jnp.einsum("hij,hj->hi", R, jnp.mean(src[idx], 1))
+    horizontal_ok = jnp.abs(hb / jnp.maximum(ha, 1e-12) / jnp.maximum(s, 1e-12) - 1) < 0.15
+    vertical_ok = jnp.abs(db[:, 2] - s * da[:, 2]) < 0.15 * lb
+    good = ((la > min_separation) & (ha > 0.3 * la) & horizontal_ok & vertical_ok & (s >= scale_range[0])
+            & (s <= scale_range[1]) & (n_ok >= 2))
+    return s, R, t, good
+
+
 def ransac_sim3(src, dst, ok, key, threshold, num_hypotheses: int, scale_range, score_ok=None, cluster=None):
     """Sim(3) RANSAC on correspondences ``src[i] -> dst[i]`` (N, 3) where ``ok``: a fixed number of
     random 3-point hypotheses (:func:`triangle_sim3`; inconsistent edge ratios or a scale outside
@@ -547,17 +619,34 @@ def ransac_sim3(src, dst, ok, key, threshold, num_hypotheses: int, scale_range, 
     ``score_ok`` (N,): the correspondences that score and refit (default ``ok``; hypotheses are
     always drawn from ``ok``), e.g. a looser set than the one that is safe to sample from;
     ``cluster`` (N,): :func:`keypoint_clusters` of ``src``, so a refit is kept when it does not
-    lose distinct 3D points (several views of one point count once).
+    lose distinct 3D points (several views of one point count once). See :func:`sim3_consensus`.
     """
-    from cm3d.solvers.align import umeyama
-
     src, dst, ok = jnp.asarray(src, jnp.float32), jnp.asarray(dst, jnp.float32), jnp.asarray(ok, bool)
-    score_ok = ok if score_ok is None else jnp.asarray(score_ok, bool)
-    count = jnp.sum if cluster is None else (lambda m: distinct_count(m, cluster))
+    hyps = triangle_hypotheses(src, dst, ok, key, num_hypotheses)
+    return sim3_consensus(src, dst, hyps, ok if score_ok is None else score_ok, threshold, scale_range, cluster)
+
+
+def triangle_hypotheses(src, dst, ok, key, num_hypotheses: int):
+    """``num_hypotheses`` random 3-point Sim(3) hypotheses (:func:`triangle_sim3`) from the
+    correspondences ``src[i] -> dst[i]`` where ``ok``: (s, R, t, consistent) with a leading axis."""
     n_ok = jnp.sum(ok)
     order = jnp.argsort(~ok, stable=True)  # the usable correspondences first
     idx = order[jax.random.randint(key, (num_hypotheses, 3), 0, jnp.maximum(n_ok, 1))]
-    s, R, t, good = jax.vmap(lambda i: triangle_sim3(src[i], dst[i]))(idx)
+    return jax.vmap(lambda i: triangle_sim3(src[i], dst[i]))(idx)
+
+
+def sim3_consensus(src, dst, hypotheses, score_ok, threshold, scale_range, cluster=None):
+    """The best of the Sim(3) ``hypotheses`` ``(s (H,), R (H, 3, 3), t (H, 3), consistent (H,))`` by
+    correspondences ``src[i] -> dst[i]`` (where ``score_ok``) within ``threshold``, refitted by
+    Umeyama on its inliers twice (a refit is kept when it loses no inlier, distinct 3D points when
+    ``cluster`` is given). Returns (transform (4, 4), scale, inliers (N,) bool; none if no
+    hypothesis is consistent, with a plausible scale, and has an inlier)."""
+    from cm3d.solvers.align import umeyama
+
+    src, dst = jnp.asarray(src, jnp.float32), jnp.asarray(dst, jnp.float32)
+    score_ok = jnp.asarray(score_ok, bool)
+    count = jnp.sum if cluster is None else (lambda m: distinct_count(m, cluster))
+    s, R, t, good = hypotheses
     pred = s[:, None, None] * jnp.einsum("hij,nj->hni", R, src) + t[:, None, :]
     inl = score_ok[None] & (jnp.sum((pred - dst[None]) ** 2, -1) < threshold**2)
     plausible = good & (s >= scale_range[0]) & (s <= scale_range[1]) & jnp.all(jnp.isfinite(pred), (1, 2))
@@ -675,13 +764,18 @@ def icp_sim3(src, src_valid, dst, dst_valid, init, distance, iterations: int, ce
     return T, count, fitness, rmse, j, inl
 
 
-def _keypoint_stage(bank: MemoryBank, m, query: Keypoints, cluster, cfg: MemoryConfig, key):
-    """Match the query's keypoints with map ``m``'s and fit Sim(3) by RANSAC: (T, scale, strict
-    matches, distinct inliers). Hypotheses come from the strict matches (mutual + ratio test); they
-    are scored on the strict and the loose matches (mutual, descriptor distance below
-    ``cfg.loose_descriptor``, no ratio test), one per query keypoint cluster (its best match), so
-    a hypothesis is scored by distinct 3D points, not by views of one point. ``cluster``:
-    :func:`keypoint_clusters` of the query."""
+def _keypoint_stage(bank: MemoryBank, m, query: Keypoints, cluster, frame_q, sep_q, cfg: MemoryConfig, key):
+    """Match the query's keypoints with map ``m``'s and fit Sim(3) by RANSAC: (T (G, 4, 4), scale
+    (G,), strict matches, distinct inliers (G,)), one pose per hypothesis generator (G = 1, or 2 with
+    ``cfg.upright_hypotheses``: the triangle RANSAC's, then the upright pairs'). Triangle hypotheses
+    come from the strict matches (mutual + ratio test); they are scored on the strict and the loose
+    matches (mutual, descriptor distance below ``cfg.loose_descriptor``, no ratio test), one per
+    query keypoint cluster (its best match; at most ``cfg.ransac_scored``), so a hypothesis is
+    scored by distinct 3D points, not by views of one point. ``cluster``: :func:`keypoint_clusters`
+    of the query. With ``cfg.upright_hypotheses`` a second consensus
+    draws 2-point hypotheses (:func:`upright_pairs`) from the strict *and* loose matches, given the
+    query's upright frame ``frame_q`` and the map's (both :func:`upright_frame` of :func:`up_axis`),
+    scored the same way; pairs closer than ``sep_q`` (query units: one cluster) are not drawn."""
     vs = jnp.maximum(bank.voxel_size[m], 1e-12)
     thr = cfg.ransac_distance * vs
     mk = Keypoints(bank.kp_points[m], bank.kp_desc[m], bank.kp_valid[m])
@@ -695,9 +789,35 @@ def _keypoint_stage(bank: MemoryBank, m, query: Keypoints, cluster, cfg: MemoryC
     tops = ok & (rank <= jax.ops.segment_min(rank, cluster, num_segments=n.shape[0])[cluster])
     first = jax.ops.segment_min(jnp.where(tops, n, n.shape[0]), cluster, num_segments=n.shape[0])
     rep = tops & (first[cluster] == n)  # one per cluster: its best match (ties: the first)
-    T, scale, inl = ransac_sim3(query.points, mk.points[j], strict, key, thr, cfg.ransac_hypotheses, cfg.scale_range,
-                                score_ok=rep, cluster=cluster)
-    return T, scale, jnp.sum(strict).astype(jnp.int32), distinct_count(inl, cluster).astype(jnp.int32)
+    src, dst = query.points, mk.points[j]
+    sel = jnp.argsort(~rep, stable=True)[: min(cfg.ransac_scored, n.shape[0])]  # the scored matches, compacted
+    scored = (src[sel], dst[sel], rep[sel])
+    gens = [triangle_hypotheses(src, dst, strict, key, cfg.ransac_hypotheses)]
+    if cfg.upright_hypotheses:
+        frame_m = upright_frame(up_axis(bank.normals[m], bank.point_valid[m], cfg.up_prior, cfg.up_max_angle))
+        gens.append(upright_pairs(src, dst, ok, jax.random.fold_in(key, 1), cfg.upright_hypotheses, frame_q, frame_m,
+                                  sep_q, cfg.scale_range))
+    # one scored match per query cluster: inliers are distinct 3D points, and a plain count counts them
+    Ts, scales, inls = zip(*(sim3_consensus(*scored[:2], h, scored[2], thr, cfg.scale_range) for h in gens))
+    inls = jnp.stack([jnp.sum(i) for i in inls])
+    return jnp.stack(Ts), jnp.stack(scales), jnp.sum(strict).astype(jnp.int32), inls.astype(jnp.int32)
+
+
+def _screen_poses(bank: MemoryBank, m, entry: MapEntry, Ts, cfg: MemoryConfig):
+    """Colour-consistent overlap (G,) of the query under each pose Ts (G, 4, 4): how many of
+    ``cfg.screen_points`` query voxels have a map point within one grid cell whose colour agrees
+    (one nearest-neighbour step, no ICP)."""
+    src, sv, idx = _even_subsample(entry.points, entry.point_valid, cfg.screen_points)
+    vs = jnp.maximum(bank.voxel_size[m], 1e-12)
+    cell = GRID_CELL * vs
+
+    def one(T):
+        j, d2 = grid_nearest(src @ T[:3, :3].T + T[:3, 3], bank.points[m], bank.point_valid[m], cell,
+                             per_cell=cfg.grid_per_cell)
+        dc = jnp.linalg.norm(entry.colors[idx].astype(jnp.float32) - bank.colors[m][j].astype(jnp.float32), axis=-1)
+        return jnp.sum(sv & (d2 < cell**2) & (dc <= cfg.max_colour_difference))
+
+    return jax.vmap(one)(Ts)
 
 
 def _icp_stage(bank: MemoryBank, m, entry: MapEntry, init, cfg: MemoryConfig):
@@ -738,28 +858,47 @@ def _decide(bank, m, T, scale, matches, kp_inliers, icp, cfg: MemoryConfig) -> V
                         fitness=fitness, inlier_count=count.astype(jnp.int32), inlier_rmse=rmse, colour_agreement=agree)
 
 
+def _refine_and_decide(bank, m, entry: MapEntry, Ts, scales, matches, inliers, cfg: MemoryConfig) -> Verification:
+    """Verify candidate ``m`` (-1: none) from its keypoint poses Ts (G, 4, 4) (:func:`_keypoint_stage`):
+    with ICP (``cfg.verification == "full"``) the pose with the largest colour-consistent overlap
+    (:func:`_screen_poses`; a wrong pose of a box room can fit its geometry well, but rarely its
+    colours) is refined by ICP, else the one with most keypoint inliers; then :func:`_decide`."""
+    mm = jnp.maximum(m, 0)
+    if cfg.verification != "full":
+        g = jnp.argmax(inliers)
+        return _decide(bank, m, Ts[g], scales[g], matches, inliers[g], None, cfg)
+    g = 0
+    if Ts.shape[0] > 1:  # colour-consistent overlap first, keypoint inliers break ties
+        g = jnp.argmax(_screen_poses(bank, mm, entry, Ts, cfg) * (cfg.ransac_scored + 1) + inliers)
+    icp = _icp_stage(bank, mm, entry, Ts[g], cfg)
+    return _decide(bank, m, Ts[g], scales[g], matches, inliers[g], icp, cfg)
+
+
 def _query_keypoints(entry: MapEntry, cfg: MemoryConfig):
-    """The query's keypoints (none: three invalid ones) and their :func:`keypoint_clusters`."""
+    """The query's keypoints (none: three invalid ones), their :func:`keypoint_clusters`, its upright
+    frame (:func:`upright_frame` of :func:`up_axis`) and the cluster separation (query units)."""
     kp = _fit_keypoints(None, 3, cfg.keypoint_dim) if entry.keypoints is None else entry.keypoints
     sep = cfg.cluster_separation * jnp.maximum(jnp.asarray(entry.voxel_size, jnp.float32), 1e-12)
-    return kp, keypoint_clusters(kp.points, kp.valid, sep)
+    frame = upright_frame(up_axis(entry.normals, entry.point_valid, cfg.up_prior, cfg.up_max_angle))
+    return kp, keypoint_clusters(kp.points, kp.valid, sep), frame, sep
 
 
 def verify(bank: MemoryBank, map_id, entry: MapEntry, cfg: MemoryConfig, key) -> Verification:
     """Verify that the query ``entry`` (its own frame and scale) shows map ``map_id``.
 
-    1. keypoint matches (:func:`match_keypoints`) and Sim(3) RANSAC (:func:`ransac_sim3`, scored by
-       distinct 3D points, see :func:`_keypoint_stage`): at least ``cfg.min_keypoint_inliers``
-       distinct inliers within ``cfg.ransac_distance`` map voxels;
-    2. (``cfg.verification == "full"``) Sim(3) ICP of ``cfg.icp_points`` query voxels against the
-       map's from the RANSAC pose (:func:`icp_sim3`), accepted on absolute inlier count
+    1. keypoint matches (:func:`match_keypoints`) and Sim(3) RANSAC (3-point hypotheses, plus
+       ``cfg.upright_hypotheses`` 2-point ones about both frames' up axes, :func:`upright_pairs`;
+       scored by distinct 3D points, see :func:`_keypoint_stage`): at least
+       ``cfg.min_keypoint_inliers`` distinct inliers within ``cfg.ransac_distance`` map voxels;
+    2. (``cfg.verification == "full"``) of the RANSAC poses the one with the most colour-consistent
+       overlap (:func:`_screen_poses`) is refined by Sim(3) ICP of ``cfg.icp_points`` query voxels
+       against the map's (:func:`icp_sim3`), accepted on absolute inlier count
        (``cfg.min_inliers``), fitness (``cfg.min_fitness``) and inlier RMSE (``cfg.max_rmse`` voxels).
     Geometry is what rejects look-alike scenes. ``cfg.verification == "none"`` accepts any stored map.
     """
     m = jnp.maximum(map_id, 0)
-    T, scale, matches, inliers = _keypoint_stage(bank, m, *_query_keypoints(entry, cfg), cfg, key)
-    icp = _icp_stage(bank, m, entry, T, cfg) if cfg.verification == "full" else None
-    return _decide(bank, jnp.where(map_id >= 0, m, -1), T, scale, matches, inliers, icp, cfg)
+    Ts, scales, matches, inliers = _keypoint_stage(bank, m, *_query_keypoints(entry, cfg), cfg, key)
+    return _refine_and_decide(bank, jnp.where(map_id >= 0, m, -1), entry, Ts, scales, matches, inliers, cfg)
 
 
 @struct.dataclass
@@ -778,8 +917,9 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
     """Which stored map does the query ``entry`` show, and where? (pure, jittable, vmappable)
 
     2D recall (:func:`recall`) proposes ``cfg.top_k`` candidates; each is checked by keypoint
-    matching + Sim(3) RANSAC; the candidate with most RANSAC inliers (ties: recall order) is
-    refined and verified by ICP (:func:`verify`, per ``cfg.verification``).
+    matching + Sim(3) RANSAC (triangle and upright-pair hypotheses); the candidate with most RANSAC
+    inliers (ties: recall order) is refined from its pose with the most colour-consistent overlap
+    and verified by ICP (:func:`verify`, per ``cfg.verification``).
     """
     r = recall(bank, entry.kf_desc, entry.kf_valid, entry.cloud_desc, cfg)
     cand = r.candidates
@@ -787,16 +927,15 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
         v = _decide(bank, cand[0], jnp.eye(4), jnp.ones(()), jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), None, cfg)
         return Identification(recall=r, candidate_inliers=jnp.zeros(cfg.top_k, jnp.int32), verification=v,
                               map_id=jnp.where(v.accepted, cand[0], -1))
-    qk, cluster = _query_keypoints(entry, cfg)
+    qk, cluster, frame, sep = _query_keypoints(entry, cfg)
     keys = jax.random.split(key, cfg.top_k)
     Ts, scales, matches, inliers = jax.vmap(
-        lambda m, k: _keypoint_stage(bank, jnp.maximum(m, 0), qk, cluster, cfg, k))(cand, keys)
-    inliers = jnp.where(cand >= 0, inliers, -1)
-    b = jnp.argmax(inliers)
+        lambda m, k: _keypoint_stage(bank, jnp.maximum(m, 0), qk, cluster, frame, sep, cfg, k))(cand, keys)
+    best = jnp.where(cand >= 0, jnp.max(inliers, 1), -1)
+    b = jnp.argmax(best)
     m = cand[b]
-    icp = _icp_stage(bank, jnp.maximum(m, 0), entry, Ts[b], cfg) if cfg.verification == "full" else None
-    v = _decide(bank, m, Ts[b], scales[b], matches[b], inliers[b], icp, cfg)
-    return Identification(recall=r, candidate_inliers=inliers, verification=v, map_id=jnp.where(v.accepted, m, -1))
+    v = _refine_and_decide(bank, m, entry, Ts[b], scales[b], matches[b], inliers[b], cfg)
+    return Identification(recall=r, candidate_inliers=best, verification=v, map_id=jnp.where(v.accepted, m, -1))
 
 
 def relocalize(transform, cam_to_world):

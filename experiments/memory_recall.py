@@ -12,12 +12,15 @@ dynamic mask (the motion stage is evaluated elsewhere).
 Preparation (host, timed separately): image descriptors and keyframes, SIFT keypoints on static
 pixels (OpenCV) lifted to 3D with the prior depth and poses, static cloud, map entry. Queries
 (jit, vmapped over a batch of prepared queries, CPU): hashed 2D recall of ``top_k`` candidates,
-keypoint matching + Sim(3) RANSAC per candidate, Sim(3) ICP verification of the best.
+keypoint matching + Sim(3) RANSAC per candidate (3-point hypotheses from the strict matches and
+2-point *upright* hypotheses, both frames' up axes estimated from floor/ceiling normals), the pose
+with the largest colour-consistent overlap, Sim(3) ICP verification of the best.
 
 Held-out split: scenes (and unseen rooms) with an even index form the *tuning* split, odd ones
 the *test* split. The verification thresholds (keypoint inliers, ICP inlier count, fitness, RMSE,
 colour agreement) are chosen on the tuning split only (:func:`tune_thresholds`, at 200 maps: the
-accuracy plateau with no false accept, then the median of each threshold over that plateau); every
+accuracy plateau with no false accept, a tuning revisit counting only with a right pose
+(:data:`POSE_TOLERANCE`), then the median of each threshold over that plateau); every
 reported figure below comes from the test split with those thresholds (``--no-tune``: the
 ``MemoryConfig`` defaults, which were set from this tuning).
 
@@ -25,9 +28,12 @@ Tables:
 - recall per bank size (1, 50, 100, 200 maps; the bank holds all scenes below n, tuning and test):
   accuracy on test revisits (accepted *and* the right map), false accepts on test unseen rooms,
   queries/s (all queries, batched, compile excluded); size 1 averages the single-map banks of the
-  50 test scenes below 100;
-- ablation at 200 maps (test split): 2D only / 2D+3D keypoints (no ICP) / full 2D+3D+ICP, and
-  the 2D stage's recall@1/2/3 (the true map among the candidates: what verification can reach);
+  50 test scenes below 100; at 200 maps also the accuracy counting only right poses;
+- ablation at 200 maps (test split): 2D only / 2D+3D keypoints (no ICP) / 2D+3D+ICP without the
+  upright pairs (the previous verification) / full, and the 2D stage's recall@1/2/3 (the true map
+  among the candidates: what verification can reach);
+- failure analysis of the test revisits at 200 maps (:func:`failure_analysis`): geometric and
+  keypoint overlap with the true map under the ground-truth transform, accepted vs missed;
 - relocalisation error of accepted test revisits (rotation deg; translation of the relocalised first
   camera, metres), median and mean;
 - map update: reconstruction Accuracy / Completion (metres, against the ground-truth static points
@@ -216,19 +222,37 @@ def _rot_deg(R):
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
 
 
-def reloc_errors(maps, revisits, ids, T, truth):
-    """Rotation (deg) and first-camera translation (m) errors of accepted, correct revisits."""
-    rot, trans = [], []
+POSE_TOLERANCE = (10.0, 1.0)  # a relocalisation is right within this rotation (deg) and translation (m)
+
+
+def pose_errors(maps, revisits, ids, T, truth):
+    """Rotation (deg) and first-camera translation (m) error (Q,) of each query's transform into
+    its accepted map; NaN where the map is not ``truth[q]``."""
+    rot, trans = np.full(len(ids), np.nan), np.full(len(ids), np.nan)
     for q, (m, Ti) in enumerate(zip(ids, T)):
-        if m != truth[q]:
+        if m != truth[q] or m < 0:
             continue
         M = maps[m].prior_from_world
         gt = M @ np.linalg.inv(revisits[q].prior_from_world)
         s_gt, s_est = np.cbrt(np.linalg.det(gt[:3, :3])), np.cbrt(np.linalg.det(Ti[:3, :3]))
-        rot.append(_rot_deg((Ti[:3, :3] / s_est) @ (gt[:3, :3] / s_gt).T))
+        rot[q] = _rot_deg((Ti[:3, :3] / s_est) @ (gt[:3, :3] / s_gt).T)
         s_map = np.cbrt(np.linalg.det(M[:3, :3]))
-        trans.append(float(np.linalg.norm(Ti[:3, 3] - gt[:3, 3]) / s_map))  # map units -> metres
-    return np.array(rot), np.array(trans)
+        trans[q] = float(np.linalg.norm(Ti[:3, 3] - gt[:3, 3]) / s_map)  # map units -> metres
+    return rot, trans
+
+
+def reloc_errors(maps, revisits, ids, T, truth):
+    """Rotation (deg) and first-camera translation (m) errors of accepted, correct revisits."""
+    rot, trans = pose_errors(maps, revisits, ids, T, truth)
+    ok = ~np.isnan(rot)
+    return rot[ok], trans[ok]
+
+
+def right_pose(maps, revisits, ids, T, truth):
+    """(Q,) bool: the query is accepted as its true map with the pose within :data:`POSE_TOLERANCE`."""
+    rot, trans = pose_errors(maps, revisits, ids, T, truth)
+    with np.errstate(invalid="ignore"):
+        return (rot < POSE_TOLERANCE[0]) & (trans < POSE_TOLERANCE[1])
 
 
 def map_update(maps, revisits, ids, T, truth, cfg, count):
@@ -252,18 +276,60 @@ def map_update(maps, revisits, ids, T, truth, cfg, count):
     return np.array(rows)
 
 
+def failure_analysis(maps, revisits, ids, truth, qs):
+    """Why revisits are missed: for each test revisit q (the true map m = truth[q]) its *geometric
+    overlap* (share of the query's voxels within 2 map voxels of the map's under the ground-truth
+    Sim(3)) and *keypoint overlap* (distinct query keypoint clusters with a map keypoint within 2
+    voxels under the same transform; the most any keypoint matching could find), accepted vs missed."""
+    from scipy.spatial import cKDTree
+
+    rows = []
+    for q in qs:
+        m = int(truth[q])
+        gt = maps[m].prior_from_world @ np.linalg.inv(revisits[q].prior_from_world)
+        e, me = revisits[q].entry, maps[m].entry
+        vs = float(me.voxel_size)
+        move = lambda p: p @ gt[:3, :3].T + gt[:3, 3]  # noqa: E731
+        d, _ = cKDTree(np.asarray(me.points)[np.asarray(me.point_valid)]).query(
+            move(np.asarray(e.points)[np.asarray(e.point_valid)]))
+        kv = np.asarray(e.keypoints.valid)
+        sep = CFG.cluster_separation * float(e.voxel_size)
+        cluster = np.asarray(memory.keypoint_clusters(e.keypoints.points, kv, sep))
+        dk, _ = cKDTree(np.asarray(me.keypoints.points)[np.asarray(me.keypoints.valid)]).query(
+            move(np.asarray(e.keypoints.points)))
+        rows.append((q, ids[q] == m, float(np.mean(d < 2 * vs)), len(set(cluster[kv & (dk < 2 * vs)]))))
+    ok = np.array([r[1] for r in rows])
+    geo, kp = np.array([r[2] for r in rows]), np.array([r[3] for r in rows])
+    print(f"\nfailure analysis ({len(rows)} test revisits; ground-truth Sim(3)): geometric overlap (query voxels "
+          "within 2 map voxels) and keypoint overlap (distinct query keypoints within 2 voxels of a map keypoint)")
+    for name, sel in (("accepted", ok), ("missed", ~ok)):
+        if sel.any():
+            print(f"  {name:>8} ({sel.sum():>3}): overlap median {100 * np.median(geo[sel]):.0f}% (min "
+                  f"{100 * geo[sel].min():.0f}%), keypoint overlap median {np.median(kp[sel]):.0f} "
+                  f"(min {kp[sel].min()})")
+    print("  missed: " + ", ".join(f"#{r[0]} {100 * r[2]:.0f}%/{r[3]}" for r in rows if not r[1]))
+    out = {"overlap_median_accepted": float(np.median(geo[ok])) if ok.any() else float("nan"),
+           "overlap_median_missed": float(np.median(geo[~ok])) if (~ok).any() else float("nan"),
+           "kp_overlap_median_accepted": float(np.median(kp[ok])) if ok.any() else float("nan"),
+           "kp_overlap_median_missed": float(np.median(kp[~ok])) if (~ok).any() else float("nan"),
+           "missed_low_overlap": int(np.sum(~ok & (geo < 0.5)))}
+    return out
+
+
 THRESHOLDS = ("min_keypoint_inliers", "min_inliers", "min_fitness", "max_rmse", "min_colour_agreement")
 GRID = ((4, 5, 6, 7, 8), (0, 25, 50, 75, 100), (0.0, 0.1, 0.2, 0.3, 0.4), (0.65, 0.7, 0.75, 0.8, 0.9),
         (0.5, 0.6, 0.7, 0.75, 0.8))
 OPEN = dict(min_keypoint_inliers=0, min_inliers=0, min_fitness=0.0, max_rmse=float("inf"), min_colour_agreement=0.0)
 
 
-def tune_thresholds(bank, queries, truth, unseen, cfg: memory.MemoryConfig):
+def tune_thresholds(bank, queries, truth, unseen, cfg: memory.MemoryConfig, pose_ok=None):
     """Verification thresholds from the tuning split only: identify every query with all
     thresholds open, then over ``GRID`` keep the settings with no false accept on the unseen
     queries and an accuracy within 1 point of the best; each threshold is the median of those
     settings (the middle of the plateau, not its edge). ``truth`` (Q,) map ids of revisits (-1 for
-    unseen); ``unseen`` (Q,) bool. Returns (thresholds dict, tuning accuracy, false accepts)."""
+    unseen); ``unseen`` (Q,) bool; ``pose_ok(map_ids, transforms) -> (Q,) bool``: when given, a
+    revisit only counts as recognised with a right pose (a right map with a wrong pose would
+    corrupt the map on update). Returns (thresholds dict, tuning accuracy, false accepts)."""
     import itertools
 
     out = identify_batch(bank, queries, dataclasses.replace(cfg, **OPEN), full=True)[3]
@@ -273,12 +339,13 @@ def tune_thresholds(bank, queries, truth, unseen, cfg: memory.MemoryConfig):
     feats = (np.asarray(v.keypoint_inliers), np.asarray(v.inlier_count), np.asarray(v.fitness),
              np.asarray(v.inlier_rmse) / vs, np.asarray(v.colour_agreement))
     rev = ~unseen
+    good = np.ones(len(pick), bool) if pose_ok is None else pose_ok(pick, np.asarray(v.transform))
 
     def score(th):
         ok = (base & (feats[0] >= th[0]) & (feats[1] >= th[1]) & (feats[2] >= th[2]) & (feats[3] <= th[3])
               & (feats[4] >= th[4]))
         ids = np.where(ok, pick, -1)
-        return float(np.mean(ids[rev] == truth[rev])), float(np.mean(ids[unseen] >= 0))
+        return float(np.mean((ids[rev] == truth[rev]) & good[rev])), float(np.mean(ids[unseen] >= 0))
 
     res = [(th, *score(th)) for th in itertools.product(*GRID)]
     clean = [r for r in res if r[2] == 0.0] or [min(res, key=lambda r: r[2])]
@@ -326,8 +393,11 @@ def main(argv=None):
     cfg = CFG
     if not args.no_tune:
         big = dataclasses.replace(CFG, max_maps=n_maps)
+        tq = np.flatnonzero(~test)
+        queries = revisits + unseen  # (unseen ones never have truth >= 0, so never a pose)
+        pose_ok = lambda ids, T: right_pose(maps, [queries[q] for q in tq], ids, T, truth[tq])  # noqa: E731
         th, acc_t, fa_t = tune_thresholds(build_bank(maps, big), jax.tree.map(lambda a: a[~test], allq),
-                                          truth[~test], is_unseen[~test], big)
+                                          truth[~test], is_unseen[~test], big, pose_ok)
         cfg = dataclasses.replace(CFG, **th)
         print(f"\nthresholds tuned on the tuning split ({int(np.sum(~test & ~is_unseen))} revisits, "
               f"{int(np.sum(~test & is_unseen))} unseen; {n_maps} maps): "
@@ -377,20 +447,31 @@ def main(argv=None):
         figures[f"recall_at_{k}"] = float(np.mean(np.any(cand[mine, :k] == truth[mine, None], 1)))
     print(f"\nablation at {n} maps (test split); the 2D stage's recall@k (true map among the first k "
           "candidates): " + ", ".join(f"@{k} {100 * figures[f'recall_at_{k}']:.1f}%" for k in range(1, k_max + 1)))
-    print(f"{'verification':>22} {'accuracy':>9} {'false acc.':>10} {'queries/s':>10}")
-    modes = (("full", "2D+3D+ICP"),) if quick else (("none", "2D only"), ("keypoints", "2D+3D (no ICP)"),
-                                                    ("full", "2D+3D+ICP"))
-    for mode, name in modes:
-        cfg_m = dataclasses.replace(full["cfg"], verification=mode)
+    print(f"{'verification':>34} {'accuracy':>9} {'false acc.':>10} {'queries/s':>10}")
+    modes = [("none", "2D only", dict(verification="none")),
+             ("keypoints", "2D+3D keypoints (no ICP)", dict(verification="keypoints")),
+             ("no_upright", "2D+3D+ICP, no upright pairs", dict(upright_hypotheses=0)),
+             ("full", "2D+3D+ICP + upright pairs (all)", {})]
+    for mode, name, change in (modes[-1:] if quick else modes):
         if mode == "full":
             ids_m, dt = ids, Q / figures[f"qps_{n}"]
         else:
-            ids_m, _, dt = identify_batch(bank, allq, cfg_m)
+            ids_m, _, dt = identify_batch(bank, allq, dataclasses.replace(full["cfg"], **change))
         acc, fa = float(np.mean(ids_m[mine] == truth[mine])), float(np.mean(ids_m[test_uns] >= 0))
-        print(f"{name:>22} {100 * acc:>8.1f}% {100 * fa:>9.1f}% {Q / dt:>10.1f}")
+        print(f"{name:>34} {100 * acc:>8.1f}% {100 * fa:>9.1f}% {Q / dt:>10.1f}")
         figures[f"ablation_{mode}_accuracy"], figures[f"ablation_{mode}_false_accept"] = acc, fa
         figures[f"ablation_{mode}_qps"] = Q / dt
+    print("(no upright pairs: the keypoint stage without its 2-point upright hypotheses and colour screening, "
+          "same thresholds)")
+    if not quick:
+        figures.update(failure_analysis(maps, revisits, ids, truth, mine))
 
+    posed = right_pose(maps, [revisits[q] for q in mine], ids[mine], T[mine], truth[mine])
+    figures[f"accuracy_{n}_right_pose"] = float(np.mean(posed))
+    wrong = int(np.sum(ids[mine] == truth[mine]) - posed.sum())
+    print(f"\naccuracy at {n} maps counting only right poses (rotation < {POSE_TOLERANCE[0]:g} deg, translation < "
+          f"{POSE_TOLERANCE[1]:g} m): {100 * np.mean(posed):.1f}% ({wrong} test revisits accepted as the right map "
+          "with a wrong pose)")
     rot, trans = reloc_errors(maps, [revisits[q] for q in mine], ids[mine], T[mine], truth[mine])
     figures["reloc_rot_deg"] = float(np.median(rot)) if len(rot) else float("nan")
     figures["reloc_trans"] = float(np.median(trans)) if len(trans) else float("nan")
