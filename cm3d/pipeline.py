@@ -9,11 +9,13 @@ arrays) -> ``step`` (jit, ``lax.scan`` over frames) -> :func:`collect` (host: pe
 2. **static landmarks**: every ``track.keyframe_every`` window slots the most confident static
    pixel of each cell is seeded and lifted with the prior depth; live landmarks are followed by
    the flow into the current frame (:mod:`cm3d.trajectory`'s landmark rules, one frame at a time);
-3. every ``keyframe_interval`` frames (and at the sequence end), inside one ``lax.cond``:
-   **recall / verify / update** the memory bank with the window's static cloud, keyframe
-   descriptors and 3D keypoints (:func:`cm3d.memory.remember`), associate the landmarks with the
-   recalled map (``τ = max(τ_min, d_scene · α)``: memory landmarks, projection covariance scaled
-   by ``α_mem``), and the **factor graph** over the window (:func:`cm3d.trajectory.refine_trajectory`).
+3. every ``keyframe_interval`` frames (and at the sequence end), inside one ``lax.cond``
+   (:func:`window_end`): **recall / verify** the window's static cloud, keyframe descriptors and 3D
+   keypoints (prior-posed) against the bank (:func:`cm3d.memory.identify`); the **factor graph** over
+   the window (:func:`cm3d.trajectory.refine_trajectory`) with the recalled map's memory landmarks
+   (after the first solve, landmarks within ``τ = max(τ_min, d_scene · α)`` of the map's surface get
+   a point-to-plane prior and projection covariance scaled by ``α_mem``); **update** the bank with the
+   refined window (merge into the recalled map or store a new one).
 
 Windows: window ``k`` holds ``keyframe_interval + 1`` pose slots; slot 0 is the *anchor*, the last
 frame of the previous window with its refined pose (held by the graph's tight prior on pose 0),
@@ -86,7 +88,9 @@ class PipelineConfig:
     :func:`gate_refinement`); track_check: tracks checked against the prior geometry before the
     graph (:class:`TrackCheckConfig`); memory: bank
     capacities and recall thresholds (used for a new bank; a loaded bank brings its own);
-    use_memory: recall / verify / update at all; keyframe_threshold: descriptor distance between
+    use_memory: recall / verify / update at all; own_map_landmarks: until a stored map is recalled, a
+    window's memory landmarks come from the map its own sequence stored (:func:`window_end`);
+    keyframe_threshold: descriptor distance between
     memory keyframes; feature_capacity: 3D keypoints per frame offered to the memory;
     flow / keypoints: host-side OpenCV front end; seed: the RANSAC key.
 
@@ -108,6 +112,7 @@ class PipelineConfig:
     memory: memory.MemoryConfig = memory.MemoryConfig(max_maps=16, max_points=4096, max_keyframes=16)
     track_check: TrackCheckConfig = TrackCheckConfig()
     use_memory: bool = True
+    own_map_landmarks: bool = True
     keyframe_threshold: float = 0.25
     feature_capacity: int = 128
     flow: FlowConfig = FlowConfig()
@@ -313,7 +318,9 @@ class Landmarks:
 class MapState:
     """Everything the pipeline remembers: the memory bank (persists across sequences), the PRNG key,
     the current window (map buffers and pose window), the landmark tracks, the previous flow, the
-    anchor (refined and prior pose of slot 0), the slot of the next frame and frames seen."""
+    anchor (refined and prior pose of slot 0), the map this sequence recalled from an earlier one
+    and its Sim(3) placement (sequence -> map), the map this sequence stored (``written``, -1 none),
+    the slot of the next frame and frames seen."""
 
     bank: memory.MemoryBank
     key: Any
@@ -326,6 +333,7 @@ class MapState:
     recalled_transform: Any
     slot: Any
     frames: Any
+    written: Any
 
 
 def _zeros_window(cfg: PipelineConfig, h: int, w: int, n: int, dk: int) -> Window:
@@ -361,7 +369,7 @@ def init_state(inputs: Inputs, cfg: PipelineConfig = PipelineConfig(), bank: mem
                   landmarks=_zeros_landmarks(cfg, h, w), prev_flow=jnp.zeros((h, w, 2), jnp.float32),
                   anchor_pose=jnp.eye(4, dtype=jnp.float32), anchor_prior=jnp.eye(4, dtype=jnp.float32),
                   recalled=-jnp.ones((), jnp.int32), recalled_transform=jnp.eye(4, dtype=jnp.float32),
-                  slot=jnp.zeros((), jnp.int32), frames=jnp.zeros((), jnp.int32))
+                  slot=jnp.zeros((), jnp.int32), frames=jnp.zeros((), jnp.int32), written=-jnp.ones((), jnp.int32))
     return st
 
 
@@ -372,7 +380,7 @@ def begin_sequence(state: MapState) -> MapState:
     win = fresh.window.replace(poses=jnp.broadcast_to(eye, fresh.window.poses.shape),
                                intrinsic=jnp.broadcast_to(jnp.eye(3, dtype=jnp.float32), fresh.window.intrinsic.shape))
     return fresh.replace(bank=state.bank, key=state.key, anchor_pose=eye, anchor_prior=eye, window=win,
-                         recalled=-jnp.ones((), jnp.int32), recalled_transform=eye,
+                         recalled=-jnp.ones((), jnp.int32), recalled_transform=eye, written=-jnp.ones((), jnp.int32),
                          landmarks=fresh.landmarks.replace(seed=state.landmarks.seed))
 
 
@@ -500,39 +508,54 @@ def _sim3_inverse_apply(A, points):
     return (points - A[:3, 3]) @ Ainv.T
 
 
-def recall_verify_update(bank, key, win: Window, mem_cfg: memory.MemoryConfig, cfg: PipelineConfig):
-    """The memory stage of a window: its static cloud, keyframe descriptors and 3D keypoints
-    (posed by ``win.poses``) -> :func:`cm3d.memory.remember`. Returns (bank, :class:`RecallReport`)."""
+def window_entry(win: Window, mem_cfg: memory.MemoryConfig, cfg: PipelineConfig) -> memory.MapEntry:
+    """The window as a memory entry (:func:`cm3d.memory.build_entry`): its static cloud, keyframe
+    descriptors and 3D keypoints, posed by ``win.poses``."""
     cloud_cfg = dataclasses.replace(mem_cfg, pixel_stride=max(1, mem_cfg.pixel_stride // cfg.stride))
     static = win.static & win.valid[:, None, None]
     cloud = memory.sequence_cloud(win.depth, win.conf, win.intrinsic, win.poses, win.image, static, cloud_cfg)
     idx, kv = memory.select_keyframes(win.desc, win.valid, cfg.keyframe_threshold, mem_cfg.max_keyframes)
     fvalid = win.feat_valid & win.valid[:, None]
-    kwargs = {}
-    if hasattr(memory, "lift_keypoints"):
-        kwargs["keypoints"] = memory.lift_keypoints(win.feat_uv, win.feat_desc, fvalid, win.depth, win.intrinsic,
-                                                    win.poses, mem_cfg.max_keypoints)
-    entry = memory.build_entry(cloud, win.desc[idx], kv, mem_cfg, **kwargs)
-    bank, rep = memory.remember(bank, entry, mem_cfg, key)
-    ident = getattr(rep, "identification", None)
-    rc = ident.recall if ident is not None else rep.recall
-    ver = ident.verification if ident is not None else None
+    kp = memory.lift_keypoints(win.feat_uv, win.feat_desc, fvalid, win.depth, win.intrinsic, win.poses,
+                               mem_cfg.max_keypoints)
+    return memory.build_entry(cloud, win.desc[idx], kv, mem_cfg, keypoints=kp)
+
+
+def _recall_report(ident: memory.Identification, map_id, transform, created) -> RecallReport:
+    rc, ver = ident.recall, ident.verification
     cand = rc.candidates
     safe = jnp.maximum(cand, 0)
-    top_k = cand.shape[0]
-    zi = jnp.zeros(top_k, jnp.int32)
-    report = RecallReport(
+    return RecallReport(
         candidates=cand.astype(jnp.int32), votes=jnp.where(cand >= 0, rc.votes[safe], 0.0).astype(jnp.float32),
         scores=jnp.where(cand >= 0, rc.scores[safe], 0.0).astype(jnp.float32),
-        keypoint_inliers=(ident.candidate_inliers.astype(jnp.int32) if ident is not None else zi),
-        accepted=rep.recalled >= 0, recalled=rep.recalled.astype(jnp.int32),
-        inlier_count=(ver.inlier_count if ver is not None else jnp.zeros(())).astype(jnp.int32),
-        inlier_rmse=(ver.inlier_rmse if ver is not None else jnp.zeros(())).astype(jnp.float32),
-        fitness=(ver.fitness if ver is not None else jnp.zeros(())).astype(jnp.float32),
-        scale=(ver.scale if ver is not None else jnp.ones(())).astype(jnp.float32),
-        transform=rep.transform.astype(jnp.float32), map_id=rep.map_id.astype(jnp.int32),
-        created=jnp.asarray(rep.created, bool))
-    return bank, report
+        keypoint_inliers=ident.candidate_inliers.astype(jnp.int32),
+        accepted=ident.map_id >= 0, recalled=ident.map_id.astype(jnp.int32),
+        inlier_count=ver.inlier_count.astype(jnp.int32), inlier_rmse=ver.inlier_rmse.astype(jnp.float32),
+        fitness=ver.fitness.astype(jnp.float32), scale=ver.scale.astype(jnp.float32),
+        transform=jnp.asarray(transform, jnp.float32), map_id=jnp.asarray(map_id, jnp.int32),
+        created=jnp.asarray(created, bool))
+
+
+def recall_verify_update(bank, key, win: Window, mem_cfg: memory.MemoryConfig, cfg: PipelineConfig):
+    """Recall / verify / update in one call (:func:`cm3d.memory.remember`) for a window posed by
+    ``win.poses``. Returns (bank, :class:`RecallReport`). (:func:`window_end` splits the three
+    steps around the factor graph.)"""
+    bank, rep = memory.remember(bank, window_entry(win, mem_cfg, cfg), mem_cfg, key)
+    return bank, _recall_report(rep.identification, rep.map_id, rep.transform, rep.created)
+
+
+def memory_surface(bank: memory.MemoryBank, map_id, transform, d_scene) -> trajectory.MemorySurface:
+    """Map ``map_id`` moved into the sequence's frame (inverse of the Sim(3) ``transform``
+    sequence -> map) as a :class:`cm3d.trajectory.MemorySurface` (empty when ``map_id < 0``)."""
+    pts, valid = memory_landmarks(bank, map_id, transform)
+    m = jnp.maximum(map_id, 0)
+    A = transform[:3, :3].astype(jnp.float32)
+    scale = jnp.cbrt(jnp.abs(jnp.linalg.det(A)))
+    R = A / jnp.maximum(scale, 1e-12)
+    normals = bank.normals[m] @ R  # map -> sequence: R^T n, as rows
+    return trajectory.MemorySurface(points=pts, normals=normals, valid=valid,
+                                    voxel=bank.voxel_size[m] / jnp.maximum(scale, 1e-12),
+                                    d_scene=jnp.asarray(d_scene, jnp.float32))
 
 
 def memory_landmarks(bank: memory.MemoryBank, map_id, transform):
@@ -552,22 +575,66 @@ def _empty_report(top_k: int) -> RecallReport:
                         map_id=-jnp.ones((), jnp.int32), created=jnp.zeros((), bool))
 
 
+def _frame_motion_residuals(r, uv, group, ok, num_groups: int, K, min_scale, rounds: int = 5):
+    """Transfer residuals (K, 2) with each group's common image motion removed.
+
+    A prior pose error moves every static point seen in a frame by nearly the same small image
+    motion (rotation: a shift plus a turn about the principal point; translation: a depth-dependent
+    shift, smaller): per group (observations of one frame from one seeding frame, which share both
+    poses' errors) an affine field ``r ≈ a + B (uv − c) / f`` is fitted by iteratively reweighted
+    least squares and subtracted. Cauchy weights at a robust scale (``1.4826`` x the median residual
+    over all groups, at least ``min_scale`` px) keep tracks on moving objects from dragging the fit;
+    groups with fewer than 8 observations are left as they are. r, uv: (K, 2); group: (K,) int in
+    [0, num_groups); ok: (K,) bool; K: (K, 3, 3)."""
+    f = K[:, 0, 0]
+    phi = jnp.stack([jnp.ones_like(f), (uv[:, 0] - K[:, 0, 2]) / f, (uv[:, 1] - K[:, 1, 2]) / f], -1)  # (K, 3)
+    r0 = jnp.where(ok[:, None], r, 0.0)
+    count = jax.ops.segment_sum(ok.astype(jnp.int32), group, num_groups)
+    w = ok.astype(r.dtype)
+    eye = jnp.eye(3, dtype=r.dtype)
+    res = r0
+    for _ in range(rounds):
+        A = jax.ops.segment_sum(w[:, None, None] * phi[:, :, None] * phi[:, None, :], group, num_groups)
+        b = jax.ops.segment_sum(w[:, None, None] * phi[:, :, None] * r0[:, None, :], group, num_groups)
+        tr = jnp.trace(A, axis1=-2, axis2=-1)
+        coef = jnp.linalg.solve(A + 1e-6 * jnp.maximum(tr, 1e-12)[:, None, None] * eye, b)
+        coef = jnp.where((count >= 8)[:, None, None] & jnp.all(jnp.isfinite(coef), (1, 2), keepdims=True), coef, 0.0)
+        res = r0 - jnp.einsum("ki,kij->kj", phi, coef[group])
+        e2 = jnp.sum(res * res, -1)
+        scale = jnp.maximum(min_scale, 1.4826 * jnp.sqrt(factors.masked_median(e2, ok)))
+        w = ok / (1.0 + e2 / scale ** 2)
+    return res
+
+
 def prior_consistent_tracks(win: Window, lm_: Landmarks, obs: trajectory.Observations, cfg: PipelineConfig):
     """Which landmark tracks agree with the prior geometry (:class:`TrackCheckConfig`): (L,) bool.
 
     The transfer error of an observation is its reprojection error at the initial variables (the
-    window's prior poses, the landmark lifted with the prior depth at its seed pixel); a track's
-    error is the RMS over its observations after the seed's (which is 0 by construction)."""
+    window's prior poses, the landmark lifted with the prior depth at its seed pixel) after the
+    image motion common to its frame and seeding frame is removed (:func:`_frame_motion_residuals`):
+    that part is the prior's *pose* error, which the graph is there to fix. Without the removal a
+    frame whose prior pose is worse than its neighbours' had all its tracks dropped (measured: the
+    last frame of scene 1's first window kept 0 of 65 observations, so the graph could not correct
+    it, and as the next window's anchor its 3° error rotated that whole window). A track's error is
+    the RMS over its observations after the seed's (which is 0 by construction)."""
     L, T = lm_.obs_valid.shape
     ov = obs.valid.reshape(L, T)
     has = ov[:, 0]
     if not cfg.track_check.enabled:
         return has
-    graph = factors.build_graph(win.poses, win.intrinsic, obs.pose_idx, obs.point_idx, obs.uv, obs.valid, None,
-                                win.valid, cfg.refine.graph)
-    err = factors.reprojection_errors(graph, factors.Variables(win.poses, lm_.points)).reshape(L, T)
+    P = win.poses[obs.pose_idx]
+    Kk = win.intrinsic[obs.pose_idx]
+    pred, z = factors.project(P, lm_.points[obs.point_idx], Kk)
+    r = pred - obs.uv
+    j = jnp.tile(jnp.arange(T), L)
+    ok = obs.valid & (z > factors.MIN_DEPTH) & jnp.all(jnp.isfinite(r), -1) & (j > 0)
+    W = win.poses.shape[0]
+    block = jnp.repeat(lm_.seed // cfg.track.keyframe_every, T)
+    group = block * W + obs.pose_idx
+    res = _frame_motion_residuals(r, obs.uv, group, ok, cfg.seed_blocks * W, Kk, cfg.track_check.min_px)
+    err = jnp.where(ok, jnp.linalg.norm(res, axis=-1), jnp.where(obs.valid & (j > 0), 1e6, 0.0)).reshape(L, T)
     n = jnp.sum(ov, -1)
-    sq = jnp.sum(jnp.where(ov, jnp.where(jnp.isfinite(err), err, 1e6) ** 2, 0.0), -1)
+    sq = jnp.sum(jnp.where(ov, err ** 2, 0.0), -1)
     rms = jnp.sqrt(sq / jnp.maximum(n - 1, 1))
     med = factors.masked_median(rms, has)
     mad = factors.masked_median(jnp.abs(rms - med), has)
@@ -589,9 +656,20 @@ def structure_only_cost(graph: factors.FactorGraph, poses, points, iterations: i
     active = (f.weight > 0) & (counts >= min_observations)[f.point_idx]
     w0 = jnp.where(active, f.weight, 0.0)
 
+    pp = graph.point_prior
+    wl = jnp.zeros(M, points.dtype) if pp is None else jnp.where(counts >= min_observations, pp.weight, 0.0)
+
+    def prior_terms(pts):  # landmark priors (memory): per-landmark cost, Gauss-Newton block and gradient
+        if pp is None:
+            return jnp.zeros(M, pts.dtype), 0.0, 0.0
+        r = factors.point_prior_residual(graph, pts)
+        S = pp.sqrt_info.astype(pts.dtype)
+        return (0.5 * wl * jnp.sum(r * r, -1), wl[:, None, None] * jnp.einsum("mij,mil->mjl", S, S),
+                wl[:, None] * jnp.einsum("mij,mi->mj", S, r))
+
     def per_point_cost(pts):
         e, _ = factors.projection_residual(graph, factors.Variables(poses, pts))
-        return jax.ops.segment_sum(w0 * factors.huber_loss(jnp.sum(e * e, -1), k), f.point_idx, M)
+        return jax.ops.segment_sum(w0 * factors.huber_loss(jnp.sum(e * e, -1), k), f.point_idx, M) + prior_terms(pts)[0]
 
     def body(_, carry):
         pts, lam = carry
@@ -599,6 +677,8 @@ def structure_only_cost(graph: factors.FactorGraph, poses, points, iterations: i
         w = w0 * factors.huber_weight(jnp.sum(e * e, -1), k)
         H = jax.ops.segment_sum(w[:, None, None] * jnp.einsum("kij,kil->kjl", B, B), f.point_idx, M)
         g = jax.ops.segment_sum(w[:, None] * jnp.einsum("kij,ki->kj", B, e), f.point_idx, M)
+        _, Hl, gl = prior_terms(pts)
+        H, g = H + Hl, g + gl
         diag = jnp.diagonal(H, axis1=-2, axis2=-1)
         Hd = H + (lam[:, None] * jnp.maximum(diag, 1e-12))[:, :, None] * jnp.eye(3, dtype=H.dtype)
         step = -jnp.linalg.solve(Hd, g[..., None])[..., 0]
@@ -608,7 +688,10 @@ def structure_only_cost(graph: factors.FactorGraph, poses, points, iterations: i
         return jnp.where(better[:, None], new, pts), jnp.where(better, lam * 0.1, lam * 10.0)
 
     pts, _ = jax.lax.fori_loop(0, iterations, body, (points, jnp.full(M, 1e-4, points.dtype)))
-    return factors.total_cost(graph, factors.Variables(poses, pts), active), pts
+    cost = factors.total_cost(graph, factors.Variables(poses, pts), active)
+    if pp is not None:  # total_cost counts every landmark prior; count those of estimable landmarks only
+        cost = cost - factors.point_prior_cost(graph, pts) + jnp.sum(prior_terms(pts)[0])
+    return cost, pts
 
 
 def gate_refinement(win: Window, points0, obs: trajectory.Observations, ref: trajectory.Refinement,
@@ -623,8 +706,10 @@ def gate_refinement(win: Window, points0, obs: trajectory.Observations, ref: tra
     rc = cfg.refine
     if not rc.gate:
         return ref.replace(refined=jnp.ones((), bool))
-    g = factors.build_graph(win.poses, win.intrinsic, obs.pose_idx, obs.point_idx, obs.uv, ref.inlier, obs.memory,
-                            win.valid, rc.graph)
+    g = factors.build_graph(win.poses, win.intrinsic, obs.pose_idx, obs.point_idx, obs.uv, ref.inlier,
+                            ref.graph.projection.memory if ref.graph is not None else obs.memory, win.valid, rc.graph)
+    if ref.graph is not None and ref.graph.point_prior is not None:  # both hypotheses see the remembered surface
+        g = g.replace(point_prior=ref.graph.point_prior)
     cost0, points_fixed = structure_only_cost(g, win.poses, points0, min_observations=rc.solver.min_observations)
     dt = win.poses.dtype
     stat = (2.0 * (cost0 - ref.result.cost)).astype(dt)
@@ -636,26 +721,30 @@ def gate_refinement(win: Window, points0, obs: trajectory.Observations, ref: tra
                        refined=use, gate_stat=stat, gate_threshold=thr)
 
 
-def factor_graph(win: Window, lm_: Landmarks, mem_points, mem_valid, cfg: PipelineConfig):
-    """Tracks checked against the prior geometry, memory association (``τ = max(τ_min, d_scene α)``)
-    and the windowed factor graph with its significance gate."""
+def factor_graph(win: Window, lm_: Landmarks, surface: trajectory.MemorySurface | None, cfg: PipelineConfig,
+                 realign=False):
+    """Tracks checked against the prior geometry, then the windowed factor graph with its
+    significance gate. ``surface``: the recalled map in the window's frame (or None): after the
+    first solve the landmarks within ``τ = max(τ_min, d_scene α)`` of its tangent planes are held on
+    it (point-to-plane priors, projection covariance scaled by ``α_mem``;
+    :func:`cm3d.trajectory.refine_trajectory`; ``realign``: its placement is first re-fitted to the
+    landmarks). Returns (Refinement, poses, observations, memory landmarks, dropped tracks)."""
     obs = landmark_observations(lm_, cfg)
     T = cfg.track.track_length
     obs_all_first = obs.valid.reshape(lm_.obs_valid.shape)[:, 0]
     first = prior_consistent_tracks(win, lm_, obs, cfg)
     obs = obs.replace(valid=obs.valid & jnp.repeat(first, T))
-    d_scene = trajectory.scene_scale(win.depth, win.static & win.valid[:, None, None])
-    points, is_mem = trajectory.add_memory_landmarks(lm_.points, first, mem_points, mem_valid, d_scene, cfg.assoc)
-    obs = obs.replace(memory=jnp.repeat(is_mem, T))
     ungated = dataclasses.replace(cfg.refine, gate=False)
-    ref = trajectory.refine_trajectory(win.poses, win.intrinsic, points, obs, ungated, pose_valid=win.valid)
-    ref = gate_refinement(win, points, obs, ref, cfg)
+    ref = trajectory.refine_trajectory(win.poses, win.intrinsic, lm_.points, obs, ungated, pose_valid=win.valid,
+                                       memory=surface, assoc=cfg.assoc, realign=realign)
+    ref = gate_refinement(win, lm_.points, obs, ref, cfg)
     n_bad = jnp.sum(obs_all_first & ~first)
+    n_mem = jnp.sum(ref.memory)
     # the scale fix belongs to refined poses only: when the gate keeps the prior, so does the scale
-    fixed = restore_depth_scale(ref.poses, win.poses, ref.points, points, lm_.seed, first & ~is_mem)
+    fixed = restore_depth_scale(ref.poses, win.poses, ref.points, lm_.points, lm_.seed, first)
     poses = jnp.where(ref.refined, fixed, ref.poses)
     poses = jnp.where(win.valid[:, None, None], poses, win.poses)
-    return ref, poses, obs, jnp.sum(is_mem), n_bad
+    return ref, poses, obs, n_mem, n_bad
 
 
 def restore_depth_scale(poses, init_poses, points, init_points, seed, valid):
@@ -677,35 +766,71 @@ def restore_depth_scale(poses, init_poses, points, init_points, seed, valid):
 
 
 def window_end(bank, key, recalled, recalled_T, win: Window, lm_: Landmarks, mem_cfg: memory.MemoryConfig,
-               cfg: PipelineConfig):
-    """The window that ends at this frame: the factor graph (memory landmarks from the map this
-    sequence last recalled, ``recalled`` with transform ``recalled_T``), then recall / verify /
-    update with the refined poses. Returns (bank, WindowResult, recalled, recalled_T) where the
-    last two are updated when this window's recall was accepted.
+               cfg: PipelineConfig, written=-1):
+    """The window that ends at this frame, in the paper's order (one branch of the step's ``lax.cond``):
 
-    Why refine before remembering: the memory stores what the graph made consistent, so memory
-    landmarks (weighted up by ``α_mem``) never pull a later window toward prior-noise geometry;
-    a window's verified recall feeds the memory landmarks of the windows after it.
-    """
+    1. **identify**: recall + verify the window's static cloud, keyframe descriptors and 3D keypoints,
+       posed by its initial poses (priors carried by the anchor), against the bank
+       (:func:`cm3d.memory.identify`);
+    2. **factor graph** with the memory landmarks of the map this sequence recalled from an earlier
+       sequence (``recalled`` with the Sim(3) ``recalled_T`` sequence -> map, which keeps its placement:
+       a window that fails verification still uses it) or, when this window verified another earlier
+       map, of that one (placed by the verification, re-fitted to the first solve's landmarks;
+       :func:`factor_graph`), so a recall improves the window that made it;
+    3. **update** the bank with the window posed by its *refined* poses: merged into that map
+       (:func:`cm3d.memory.update_map`), else into the map this sequence stored (``written``, in the
+       sequence's frame), else stored as a new map.
+
+    Until a map of an earlier sequence is recalled, the map this sequence stored is the source of
+    memory landmarks (``cfg.own_map_landmarks``: the previous windows' refined surface carried across
+    the window boundary, in the sequence's frame); without it a sequence that recalls nothing is
+    refined exactly as without memory. Returns (bank, WindowResult, recalled, recalled_T, written)."""
     if cfg.use_memory:
-        mem_pts, mem_valid = memory_landmarks(bank, recalled, recalled_T)
+        entry0 = window_entry(win, mem_cfg, cfg)
+        ident = memory.identify(bank, entry0, mem_cfg, key)
+        hit = ident.map_id >= 0
+        # a map new to this sequence is placed by this window's verification (prior-posed geometry):
+        # re-fitted to the refined landmarks; the sequence's map keeps its placement (no drift)
+        other = hit & (ident.map_id != written)
+        new_map = other & (ident.map_id != recalled)
+        use_map = jnp.where(new_map, ident.map_id, recalled).astype(jnp.int32)
+        use_T = jnp.where(new_map, ident.verification.transform, recalled_T).astype(jnp.float32)
+        d_scene = trajectory.scene_scale(win.depth, win.static & win.valid[:, None, None])
+        # without a recalled map: the surface the sequence's earlier windows stored (its own frame)
+        own = cfg.own_map_landmarks & (use_map < 0) & (written >= 0)
+        surface = memory_surface(bank, jnp.where(own, written, use_map), jnp.where(own, jnp.eye(4), use_T), d_scene)
+        realign = new_map
     else:
-        mem_pts, mem_valid = jnp.zeros((1, 3), jnp.float32), jnp.zeros(1, bool)
-    ref, poses, obs, n_mem, n_bad = factor_graph(win, lm_, mem_pts, mem_valid, cfg)
+        surface, realign = None, False
+    ref, poses, obs, n_mem, n_bad = factor_graph(win, lm_, surface, cfg, realign)
+    poses = poses.astype(jnp.float32)
     if cfg.use_memory:
-        bank, report = recall_verify_update(bank, key, win.replace(poses=poses.astype(jnp.float32)), mem_cfg, cfg)
-        recalled = jnp.where(report.accepted, report.recalled, recalled)
-        recalled_T = jnp.where(report.accepted, report.transform, recalled_T)
+        use_T = (use_T @ ref.alignment.astype(jnp.float32)).astype(jnp.float32)
+        entry = window_entry(win.replace(poses=poses), mem_cfg, cfg)
+        # else the sequence's own map, whose frame is the sequence's (identity: exact, no ICP noise)
+        target = jnp.where(use_map >= 0, use_map, written).astype(jnp.int32)
+        target_T = jnp.where(use_map >= 0, use_T, jnp.eye(4)).astype(jnp.float32)
+        known = target >= 0
+
+        def merge(b):
+            return memory.update_map(b, jnp.maximum(target, 0), entry, target_T, mem_cfg), target
+
+        bank, map_id = jax.lax.cond(known, merge, lambda b: memory.insert_map(b, entry), bank)
+        created = ~known & (map_id >= 0)
+        written = jnp.where(created, map_id, written).astype(jnp.int32)
+        recalled = use_map
+        recalled_T = use_T
+        report = _recall_report(ident, map_id, jnp.where(hit, ident.verification.transform, jnp.eye(4)), created)
     else:
         report = _empty_report(mem_cfg.top_k)
-    res = WindowResult(poses=poses.astype(jnp.float32), index=win.index, valid=win.valid, refined=ref.refined,
+    res = WindowResult(poses=poses, index=win.index, valid=win.valid, refined=ref.refined,
                        gate_stat=ref.gate_stat.astype(jnp.float32),
                        gate_threshold=ref.gate_threshold.astype(jnp.float32),
                        observations=jnp.sum(obs.valid).astype(jnp.int32), inliers=jnp.sum(ref.inlier).astype(jnp.int32),
                        landmarks=jnp.sum(obs.valid.reshape(lm_.obs_valid.shape)[:, 0]).astype(jnp.int32),
                        memory_landmarks=n_mem.astype(jnp.int32), iterations=ref.result.iterations.astype(jnp.int32),
                        recall=report, inconsistent=n_bad.astype(jnp.int32))
-    return bank, res, recalled, recalled_T
+    return bank, res, recalled, recalled_T, written
 
 
 def _empty_result(cfg: PipelineConfig, mem_cfg: memory.MemoryConfig) -> WindowResult:
@@ -774,22 +899,22 @@ def step(state: MapState, inputs_t: Inputs, cfg: PipelineConfig = PipelineConfig
     key, sub = jax.random.split(state.key)
 
     def on_end(args):
-        bank, win, lms, rec, rec_T = args
-        bank, res, rec, rec_T = window_end(bank, sub, rec, rec_T, win, lms, mem_cfg, cfg)
+        bank, win, lms, rec, rec_T, wr = args
+        bank, res, rec, rec_T, wr = window_end(bank, sub, rec, rec_T, win, lms, mem_cfg, cfg, wr)
         pose_t = res.poses[s]
         # the new window: this frame becomes the anchor (slot 0)
         nw = jax.tree.map(lambda a: _put(jnp.zeros_like(a), 0, a[s]), win)
         nw = nw.replace(poses=jnp.broadcast_to(pose_t, win.poses.shape),  # free slots: harmless copies
                         intrinsic=jnp.broadcast_to(win.intrinsic[s], win.intrinsic.shape))
         fresh = lms.replace(alive=jnp.zeros_like(lms.alive), obs_valid=jnp.zeros_like(lms.obs_valid))
-        return bank, nw, fresh, res, pose_t, f.cam_to_world, rec, rec_T
+        return bank, nw, fresh, res, pose_t, f.cam_to_world, rec, rec_T, wr
 
     def on_continue(args):
-        bank, win, lms, rec, rec_T = args
-        return bank, win, lms, _empty_result(cfg, mem_cfg), anchor_pose, anchor_prior, rec, rec_T
+        bank, win, lms, rec, rec_T, wr = args
+        return bank, win, lms, _empty_result(cfg, mem_cfg), anchor_pose, anchor_prior, rec, rec_T, wr
 
-    bank, win, lms, res, anchor_pose, anchor_prior, recalled, recalled_T = jax.lax.cond(
-        end, on_end, on_continue, (state.bank, win, lms, state.recalled, state.recalled_transform))
+    bank, win, lms, res, anchor_pose, anchor_prior, recalled, recalled_T, written = jax.lax.cond(
+        end, on_end, on_continue, (state.bank, win, lms, state.recalled, state.recalled_transform, state.written))
     slot = jnp.where(end, 0, s)
 
     # seed landmarks at the seeding slots (slot 0 of a new window is this frame again)
@@ -798,7 +923,7 @@ def step(state: MapState, inputs_t: Inputs, cfg: PipelineConfig = PipelineConfig
                                                          win.poses[slot], cfg), lambda m: m, lms)
     new = MapState(bank=bank, key=key, window=win, landmarks=lms, prev_flow=jnp.asarray(inputs_t.flow, jnp.float32),
                    anchor_pose=anchor_pose, anchor_prior=anchor_prior, recalled=recalled,
-                   recalled_transform=recalled_T, slot=slot + 1, frames=state.frames + 1)
+                   recalled_transform=recalled_T, slot=slot + 1, frames=state.frames + 1, written=written)
     ok = inputs_t.valid
     new = jax.tree.map(lambda a, b: jnp.where(ok, a, b), new, state)
     out = StepOutputs(mask=dynamic & ok, init_pose=init_pose, window_end=end & ok, window=res, valid=ok)

@@ -58,10 +58,18 @@ class TrackConfig:
 
 @dataclasses.dataclass(frozen=True)
 class AssociationConfig:
-    """Adaptive association threshold ``τ_dist = max(tau_min, d_scene · ratio)`` (scene units)."""
+    """Adaptive association threshold ``τ_dist = max(tau_min, d_scene · ratio)`` (scene units).
+
+    Memory landmarks in :func:`refine_trajectory` (``memory=``): a landmark is associated with the
+    remembered surface when, after the first solve, its nearest map point is within
+    ``max(τ_dist, radius_voxels · voxel)`` and its distance to that point's tangent plane is below
+    ``τ_dist``; it then gets a point-to-plane prior of std ``plane_sigma_ratio · d_scene`` (the
+    landmark lies on the remembered surface)."""
 
     tau_min: float = 0.01
     ratio: float = 0.01
+    radius_voxels: float = 1.5
+    plane_sigma_ratio: float = 0.005
 
 
 @dataclasses.dataclass(frozen=True)
@@ -314,11 +322,100 @@ def add_memory_landmarks(points, valid, bank, bank_valid, d_scene, cfg: Associat
 
 
 @struct.dataclass
+class MemorySurface:
+    """A remembered map in the window's frame for :func:`refine_trajectory`: points (P, 3), unit
+    normals (P, 3), valid (P,), voxel () its voxel size, d_scene () the window's scene depth."""
+
+    points: jnp.ndarray
+    normals: jnp.ndarray
+    valid: jnp.ndarray
+    voxel: jnp.ndarray
+    d_scene: jnp.ndarray
+
+
+def associate_surface(points, valid, mem: MemorySurface, cfg: AssociationConfig = AssociationConfig()):
+    """Landmarks (L, 3) on the remembered surface (see :class:`AssociationConfig`): (index (L,) of
+    the nearest map point, matched (L,) bool, point-to-plane distance (L,))."""
+    d2 = jnp.sum((points[:, None, :] - mem.points[None, :, :]) ** 2, -1)
+    d2 = jnp.where(mem.valid[None, :], d2, jnp.inf)
+    idx = jnp.argmin(d2, -1).astype(jnp.int32)
+    best = jnp.take_along_axis(d2, idx[:, None], -1)[:, 0]
+    tau = association_threshold(mem.d_scene, cfg)
+    radius = jnp.maximum(tau, cfg.radius_voxels * mem.voxel)
+    plane = jnp.abs(jnp.sum(mem.normals[idx] * (points - mem.points[idx]), -1))
+    n_ok = jnp.sum(mem.normals[idx] ** 2, -1) > 0.5
+    matched = valid & (best <= radius * radius) & (plane <= tau) & n_ok & jnp.all(jnp.isfinite(points), -1)
+    return idx, matched, plane
+
+
+def align_to_surface(points, valid, mem: MemorySurface, cfg: AssociationConfig = AssociationConfig(),
+                     iterations: int = 3):
+    """The similarity (4, 4) that puts landmarks (L, 3) on the remembered surface: point-to-plane
+    Gauss-Newton over the landmarks within ``max(τ_dist, radius_voxels · voxel)`` of a map point
+    (re-associated every iteration, Cauchy-weighted at ``τ_dist``; identity with fewer than 12).
+    A recalled map is placed by the verification's Sim(3), estimated from the window's *prior*-posed
+    cloud; this re-fit to the refined landmarks removes the prior's share of that placement."""
+    tau = association_threshold(mem.d_scene, cfg)
+    radius = jnp.maximum(tau, cfg.radius_voxels * mem.voxel)
+    c = jnp.sum(jnp.where(valid[:, None], points, 0.0), 0) / jnp.maximum(jnp.sum(valid), 1)
+
+    def body(_, T):
+        p = points @ T[:3, :3].T + T[:3, 3]
+        d2 = jnp.where(mem.valid[None, :], jnp.sum((p[:, None, :] - mem.points[None, :, :]) ** 2, -1), jnp.inf)
+        idx = jnp.argmin(d2, -1)
+        near = valid & (jnp.min(d2, -1) <= radius * radius) & (jnp.sum(mem.normals[idx] ** 2, -1) > 0.5)
+        n, q = mem.normals[idx], mem.points[idx]
+        r = jnp.sum(n * (p - q), -1)
+        w = near / (1.0 + (r / tau) ** 2)
+        # rotation about the landmarks' centre, translation, scale about the centre
+        J = jnp.concatenate([jnp.cross(p - c, n), n, jnp.sum(n * (p - c), -1, keepdims=True)], -1)
+        H = jnp.einsum("l,li,lj->ij", w, J, J) + 1e-9 * jnp.eye(7)
+        dx = -jnp.linalg.solve(H, jnp.einsum("l,li,l->i", w, J, r))
+        ok = (jnp.sum(near) >= 12) & jnp.all(jnp.isfinite(dx))
+        dx = jnp.where(ok, dx, 0.0)
+        th = jnp.linalg.norm(dx[:3])
+        k = dx[:3] / jnp.maximum(th, 1e-12)
+        Kx = jnp.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]], points.dtype)
+        dR = jnp.eye(3, dtype=points.dtype) + jnp.sin(th) * Kx + (1 - jnp.cos(th)) * Kx @ Kx
+        sc = jnp.exp(dx[6])
+        D = jnp.eye(4, dtype=points.dtype).at[:3, :3].set(sc * dR).at[:3, 3].set(c - sc * dR @ c + dx[3:6])
+        return D @ T
+
+    return jax.lax.fori_loop(0, iterations, body, jnp.eye(4, dtype=points.dtype))
+
+
+def move_surface(mem: MemorySurface, T) -> MemorySurface:
+    """The surface moved by the inverse of the similarity ``T = [s R, t]`` (landmarks ``T p`` on it
+    <=> ``p`` on the moved one)."""
+    A, t = T[:3, :3], T[:3, 3]
+    s = jnp.cbrt(jnp.linalg.det(A))
+    R = A / s
+    return mem.replace(points=(mem.points - t) @ R / s, normals=mem.normals @ R, voxel=mem.voxel / s)
+
+
+def memory_point_prior(graph: factors.FactorGraph, points, point_valid, mem: MemorySurface,
+                       cfg: AssociationConfig = AssociationConfig()):
+    """``graph`` with point-to-plane priors on the landmarks (L, 3) associated with the remembered
+    surface (:func:`associate_surface`) and their projections flagged as memory (``σ² ← α σ²``).
+    Returns (graph, matched (L,))."""
+    idx, matched, _ = associate_surface(points, point_valid, mem, cfg)
+    n = mem.normals[idx]
+    sigma = jnp.maximum(cfg.plane_sigma_ratio * mem.d_scene, 1e-9)
+    S = jnp.zeros((points.shape[0], 3, 3), points.dtype).at[:, 0, :].set(n / sigma)
+    g = factors.with_point_prior(graph, mem.points[idx], S, matched)
+    f = g.projection
+    return g.replace(projection=f.replace(memory=f.memory | matched[f.point_idx])), matched
+
+
+@struct.dataclass
 class Refinement:
     """Result of :func:`refine_trajectory`: poses (S, 4, 4), points (L, 3), the final LM result,
     the inlier mask (K,) of the projection factors, the last outlier threshold (px), and the
     gate's decision (``refined``: the poses are the refined ones) with its test statistic and
-    threshold; ``refined_poses``: the refined poses whatever the gate decided."""
+    threshold; ``refined_poses``: the refined poses whatever the gate decided; ``graph``: the final
+    graph (weights after outlier rejection, memory priors); ``memory``: (L,) landmarks held on the
+    remembered surface (all False without ``memory``); ``alignment``: (4, 4) the re-fit of the
+    surface's placement (``realign``)."""
 
     poses: jnp.ndarray
     points: jnp.ndarray
@@ -329,6 +426,9 @@ class Refinement:
     gate_stat: jnp.ndarray
     gate_threshold: jnp.ndarray
     refined_poses: jnp.ndarray
+    graph: factors.FactorGraph | None = None
+    memory: jnp.ndarray | None = None
+    alignment: jnp.ndarray | None = None
 
 
 def chi2_quantile(q, dof):
@@ -339,37 +439,62 @@ def chi2_quantile(q, dof):
 
 
 def refine_trajectory(prior_poses, intrinsics, points, obs: Observations,
-                      cfg: RefineConfig = RefineConfig(), pose_valid=None) -> Refinement:
+                      cfg: RefineConfig = RefineConfig(), pose_valid=None, memory: MemorySurface | None = None,
+                      assoc: AssociationConfig = AssociationConfig(), realign=False) -> Refinement:
     """The paper's factor-graph refinement of the prior poses (S, 4, 4) with landmarks (L, 3).
 
     Solve, reject outliers with the adaptive threshold, solve again from the previous optimum
     (``cfg.rounds`` solves), re-orthonormalise the rotations by SVD; then (``cfg.gate``) keep the
     prior poses unless the refinement is statistically significant (see :class:`RefineConfig`).
     The solves run as stages of one ``lax.scan`` (one solver in the compiled program).
+
+    ``memory``: a remembered surface in the poses' frame. With the outlier rejection after the
+    first solve, the landmarks (now consistent with each other, not with the prior's noise) are
+    associated with it (:func:`memory_point_prior`): the later solves hold them on the remembered
+    surface (point-to-plane priors; their projections weighted up by ``α_mem``), which ties the
+    window's poses to the map (free landmarks that merely start at a remembered position do not).
+    ``realign`` (bool array): first re-fit the surface's placement to the landmarks
+    (:func:`align_to_surface`; for a map recalled by this window, placed from prior-posed geometry);
+    the correction is ``Refinement.alignment`` (identity otherwise).
     """
     graph = factors.build_graph(prior_poses, intrinsics, obs.pose_idx, obs.point_idx, obs.uv,
                                 obs.valid, obs.memory, pose_valid, cfg.graph)
+    L = points.shape[0]
+    if memory is not None:  # the same pytree structure in every stage of the scan: empty priors first
+        graph = factors.with_point_prior(graph, jnp.zeros_like(points), jnp.zeros((L, 3, 3), points.dtype),
+                                         jnp.zeros(L, bool))
+    pvalid = jnp.zeros(L, bool).at[obs.point_idx].max(obs.valid)
     dt = prior_poses.dtype
     rounds = cfg.rounds
     gate_stage = rounds if cfg.gate else -1
     x0 = factors.Variables(prior_poses, points)
 
     def stage(carry, k):
-        graph, x, inlier, tau = carry
+        graph, x, inlier, tau, align = carry
         gate = k == gate_stage
         g = graph.replace(pose_fixed=jnp.where(gate, jnp.ones_like(graph.pose_fixed), graph.pose_fixed))
         init = factors.Variables(jnp.where(gate, prior_poses, x.poses), x.points)
         res = lm.solve(g, init, cfg.solver)
         reject = k < rounds - 1
         g2, inl2, tau2 = factors.reject_outliers(graph, res.params, cfg.outliers)
+        A2 = align
+        if memory is not None:  # associate once, after the first solve (lax.cond: skipped in the other stages)
+            def attach(g2):
+                kept = jnp.zeros(L, bool).at[g2.projection.point_idx].max(g2.projection.weight > 0)
+                A2 = jax.lax.cond(realign, lambda: align_to_surface(res.params.points, pvalid & kept, memory, assoc),
+                                  lambda: align)
+                g2, _ = memory_point_prior(g2, res.params.points, pvalid & kept, move_surface(memory, A2), assoc)
+                return g2, A2
+
+            g2, A2 = jax.lax.cond(reject, attach, lambda g2: (g2, align), g2)
         pick = lambda a, b: jax.tree.map(lambda u, v: jnp.where(reject, u, v), a, b)  # noqa: E731
-        graph, inlier, tau = pick((g2, inl2, tau2), (graph, inlier, tau))
+        graph, inlier, tau, align = pick((g2, inl2, tau2, A2), (graph, inlier, tau, align))
         x = jax.tree.map(lambda u, v: jnp.where(gate, u, v), x, res.params)
-        return (graph, x, inlier, tau), res
+        return (graph, x, inlier, tau, align), res
 
     n_stages = rounds + (1 if cfg.gate else 0)
-    carry0 = (graph, x0, obs.valid, jnp.zeros((), dt))
-    (graph, x, inlier, tau), results = jax.lax.scan(stage, carry0, jnp.arange(n_stages))
+    carry0 = (graph, x0, obs.valid, jnp.zeros((), dt), jnp.eye(4, dtype=dt))
+    (graph, x, inlier, tau, align), results = jax.lax.scan(stage, carry0, jnp.arange(n_stages))
     res = jax.tree.map(lambda a: a[rounds - 1], results)
     refined_poses = factors.orthonormalize_poses(res.params.poses)
     stat = thr = jnp.zeros((), dt)
@@ -384,8 +509,10 @@ def refine_trajectory(prior_poses, intrinsics, points, obs: Observations,
         use = stat > thr
         points_out = jnp.where(use, res.params.points, fixed.params.points)
     poses = jnp.where(use, refined_poses, prior_poses)
+    mem = graph.point_prior.weight > 0 if memory is not None else jnp.zeros(L, bool)
     return Refinement(poses=poses, points=points_out, result=res, inlier=inlier, tau_px=tau, refined=use,
-                      gate_stat=stat, gate_threshold=thr, refined_poses=refined_poses)
+                      gate_stat=stat, gate_threshold=thr, refined_poses=refined_poses, graph=graph, memory=mem,
+                      alignment=align)
 
 
 def prepare_landmarks(depth, conf, static, intrinsics, prior_poses, flow, flow_bwd=None,

@@ -97,12 +97,25 @@ class MotionFactors:
 
 
 @struct.dataclass
+class PointPriorFactors:
+    """Priors on landmarks ``½ w |S (L − target)|²``, one slot per landmark (M slots): a remembered
+    position (memory landmarks). target: (M, 3); sqrt_info: (M, 3, 3) the whitening ``S`` (square
+    root of the information: ``I / σ`` isotropic, ``[nᵀ / σ; 0; 0]`` point-to-plane, i.e. the
+    landmark lies on a remembered surface); weight: (M,) >= 0 (0 = no prior)."""
+
+    target: jnp.ndarray
+    sqrt_info: jnp.ndarray
+    weight: jnp.ndarray
+
+
+@struct.dataclass
 class FactorGraph:
     """The whole problem: per-pose intrinsics (N, 3, 3), the three factor families, the Huber
     threshold ``huber_k`` (whitened units; ``inf`` = least squares) and the memory covariance
     scale ``memory_alpha`` (0 < α; α < 1 trusts memory landmarks more). All leaves are arrays, so
     gradients flow to observations, covariances, weights, ``huber_k`` and ``memory_alpha``.
-    ``pose_fixed`` (N,) bool holds poses at their current value (structure-only solves)."""
+    ``pose_fixed`` (N,) bool holds poses at their current value (structure-only solves).
+    ``point_prior``: optional :class:`PointPriorFactors` (None: none, the paper's graph)."""
 
     intrinsics: jnp.ndarray
     projection: ProjectionFactors
@@ -111,6 +124,7 @@ class FactorGraph:
     huber_k: jnp.ndarray
     memory_alpha: jnp.ndarray
     pose_fixed: jnp.ndarray
+    point_prior: PointPriorFactors | None = None
 
     @property
     def num_poses(self) -> int:
@@ -362,7 +376,33 @@ def total_cost(graph: FactorGraph, x: Variables, obs_mask=None):
     ep, em = pose_residuals(graph, x.poses)
     prior = 0.5 * jnp.sum(graph.prior.weight * jnp.sum(ep * ep, -1))
     motion = 0.5 * jnp.sum(graph.motion.weight * jnp.sum(em * em, -1))
-    return proj + prior + motion
+    return proj + prior + motion + point_prior_cost(graph, x.points)
+
+
+def point_prior_residual(graph: FactorGraph, points):
+    """Whitened landmark-prior residuals ``S (L − target)`` (M, 3) (zeros without point priors);
+    the Jacobian with respect to ``L`` is ``S``."""
+    pp = graph.point_prior
+    if pp is None:
+        return jnp.zeros_like(points)
+    return jnp.einsum("mij,mj->mi", pp.sqrt_info.astype(points.dtype), points - pp.target.astype(points.dtype))
+
+
+def point_prior_cost(graph: FactorGraph, points):
+    """``½ Σ w |S (L − target)|²`` (0 without point priors)."""
+    if graph.point_prior is None:
+        return jnp.zeros((), points.dtype)
+    r = point_prior_residual(graph, points)
+    return 0.5 * jnp.sum(graph.point_prior.weight * jnp.sum(r * r, -1))
+
+
+def with_point_prior(graph: FactorGraph, target, sqrt_info, weight) -> FactorGraph:
+    """``graph`` with landmark priors (see :class:`PointPriorFactors`); target (M, 3), sqrt_info
+    (M, 3, 3), weight (M,) (bool or >= 0)."""
+    dt = graph.intrinsics.dtype
+    weight = jnp.asarray(weight)
+    weight = weight.astype(dt) if weight.dtype == bool else jnp.asarray(weight, dt)
+    return graph.replace(point_prior=PointPriorFactors(jnp.asarray(target, dt), jnp.asarray(sqrt_info, dt), weight))
 
 
 # ----------------------------------------------------------------------------------------------

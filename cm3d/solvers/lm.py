@@ -56,6 +56,7 @@ from cm3d.solvers.factors import (
     FactorGraph,
     Variables,
     orthonormalize_poses,
+    point_prior_residual,
     pose_factor_jacobians,
     projection_linearize,
     total_cost,
@@ -282,6 +283,8 @@ class Linearization:
     g_point: jnp.ndarray  # (M, 3)
     cost: jnp.ndarray
     lin_err: jnp.ndarray  # ½ Σ w |e|² (GTSAM's linearised error at δ = 0)
+    r_point: jnp.ndarray | None = None  # (M, 3) landmark-prior residuals (graphs with point priors)
+    w_point: jnp.ndarray | None = None  # (M,) their weights (0 for inactive landmarks)
 
 
 def linearize(graph: FactorGraph, x: Variables, st: Structure, differentiable: bool = False) -> Linearization:
@@ -322,10 +325,19 @@ def linearize(graph: FactorGraph, x: Variables, st: Structure, differentiable: b
     g_pose += jax.ops.segment_sum(wm[:, None] * mtv(J_b, e_m), graph.motion.idx_b, N)
     g_point = jax.ops.segment_sum(gB, f.point_idx, M)
     pose_sq = 0.5 * (jnp.sum(wp * jnp.sum(e_p * e_p, -1)) + jnp.sum(wm * jnp.sum(e_m * e_m, -1)))
+    r_l = wl = None
+    if graph.point_prior is not None:  # landmark priors: residual S (L - target), Jacobian S
+        pp = graph.point_prior
+        S = pp.sqrt_info.astype(e.dtype)
+        r_l = point_prior_residual(graph, x.points)
+        wl = jnp.where(st.point_active, pp.weight, 0.0)
+        H_point += wl[:, None, None] * mtm(S, S)
+        g_point += wl[:, None] * mtv(S, r_l)
+        pose_sq += 0.5 * jnp.sum(wl * jnp.sum(r_l * r_l, -1))
     return Linearization(
         e=e, A=A, B=B, w=w, e_p=e_p, J_p=J_p, e_m=e_m, J_a=J_a, J_b=J_b, H_pose=H_pose,
         H_motion=H_motion, W=W, H_point=H_point, g_pose=g_pose, g_point=g_point,
-        cost=cost_proj + pose_sq, lin_err=0.5 * jnp.sum(w * sq) + pose_sq)
+        cost=cost_proj + pose_sq, lin_err=0.5 * jnp.sum(w * sq) + pose_sq, r_point=r_l, w_point=wl)
 
 
 def linearized_error(graph: FactorGraph, lin: Linearization, dp, dl):
@@ -335,8 +347,14 @@ def linearized_error(graph: FactorGraph, lin: Linearization, dp, dl):
     r = lin.e + jnp.einsum("kri,ki->kr", lin.A, dp[f.pose_idx]) + jnp.einsum("kri,ki->kr", lin.B, dl[f.point_idx])
     rp = lin.e_p + mv(lin.J_p, dp[graph.prior.pose_idx])
     rm = lin.e_m + mv(lin.J_a, dp[graph.motion.idx_a]) + mv(lin.J_b, dp[graph.motion.idx_b])
-    return 0.5 * (jnp.sum(lin.w * jnp.sum(r * r, -1)) + jnp.sum(graph.prior.weight * jnp.sum(rp * rp, -1))
-                  + jnp.sum(graph.motion.weight * jnp.sum(rm * rm, -1)))
+    out = 0.5 * (jnp.sum(lin.w * jnp.sum(r * r, -1)) + jnp.sum(graph.prior.weight * jnp.sum(rp * rp, -1))
+                 + jnp.sum(graph.motion.weight * jnp.sum(rm * rm, -1)))
+    if graph.point_prior is not None:
+        pp = graph.point_prior
+        S = pp.sqrt_info.astype(dl.dtype)
+        rl = lin.r_point + mv(S, dl)
+        out += 0.5 * jnp.sum(lin.w_point * jnp.sum(rl * rl, -1))
+    return out
 
 
 # ----------------------------------------------------------------------------------------------
@@ -588,6 +606,9 @@ def gradient(graph: FactorGraph, x: Variables, st: Structure):
     g_pose += jax.ops.segment_sum(wa[:, None] * mtv(J_a, e_m), graph.motion.idx_a, N)
     g_pose += jax.ops.segment_sum(wb[:, None] * mtv(J_b, e_m), graph.motion.idx_b, N)
     g_point = jax.ops.segment_sum(mtv(B, we), f.point_idx, M)
+    if graph.point_prior is not None:
+        pp = graph.point_prior
+        g_point += pp.weight[:, None] * mtv(pp.sqrt_info.astype(e.dtype), point_prior_residual(graph, x.points))
     return g_pose, jnp.where(st.point_active[:, None], g_point, 0.0)
 
 
