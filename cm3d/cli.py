@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -102,7 +103,8 @@ def _holds_chunks(path) -> bool:
 
 
 def _load_inputs(paths):
-    """One sequence, or (several paths) chunks of one long video stitched into one."""
+    """(one sequence, None), or (None, chunks) for several paths or one file with a ``chunk`` key:
+    the overlapping chunks of one long video (a file holding a single chunk is one sequence)."""
     from cm3d.data.loaders import load_input
 
     if len(paths) == 1 and not _holds_chunks(paths[0]):
@@ -112,14 +114,34 @@ def _load_inputs(paths):
     chunks = stitch.load_chunks(paths)
     if len(chunks) == 1:
         return chunks[0], None
-    res = stitch.stitch_chunks(chunks)
-    return res.sequence, res
+    stitch.chunk_layout(chunks)  # layout errors before any work
+    return None, chunks
+
+
+def _run_chunks(chunks, cfg, bank, args):
+    """The chunks of one long video: the pipeline over every chunk threading one memory bank, Sim(3)
+    overlap alignment, loop closures from recalls across chunks, the Sim(3) pose graph
+    (:func:`cm3d.stitch.stitch_with_memory`). Returns (bank, whole-video result, stitch facts)."""
+    from cm3d import stitch
+
+    bars = _Progress(not args.quiet)
+    st = stitch.stitch_with_memory(chunks, pipeline_config=cfg, bank=bank,
+                                   progress=lambda stage, done, n: bars(stage.replace("visit", "chunk"), done, n))
+    res = stitch.memory_sequence_result(st, chunks)
+    f = st.refinement
+    facts = {"ranges": st.ranges, "chunk_transforms": st.chunk_transforms, "refined": st.refined,
+             "boundaries": [dataclasses.asdict(b) for b in st.boundaries],
+             "pose_graph": {k: v for k, v in f.items()
+                            if k not in ("loop_discrepancy", "loop_kept", "chained_transforms")},
+             "loops": [{"chunk": lc.chunk, "other": lc.other, "frames": list(lc.frames),
+                        "other_frames": list(lc.other_frames or ()), "transform": lc.transform,
+                        "inliers": lc.inliers, "rmse": lc.rmse, "discrepancy": f["loop_discrepancy"][i],
+                        "kept": bool(f["loop_kept"][i])} for i, lc in enumerate(st.loops)]}
+    return st.bank, res, facts
 
 
 def _run(args) -> int:
-    import dataclasses
-
-    from cm3d import memory, outputs, pipeline
+    from cm3d import memory, outputs, pipeline, stitch
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -128,29 +150,37 @@ def _run(args) -> int:
     bank_path = Path(args.memory) if args.memory else None
     if bank_path is not None and bank_path.exists():
         bank, mem_cfg = memory.load(bank_path)
-    seq, stitched = _load_inputs(args.inputs)
-    H, W = seq.image_size
+    seq, chunks = _load_inputs(args.inputs)
+    H, W = (seq if seq is not None else chunks[0]).image_size
     changes = {"use_memory": not args.no_memory}
     if args.keyframe_interval is not None:
         changes["keyframe_interval"] = args.keyframe_interval
     if args.stride is not None:
         changes["stride"] = args.stride
-    cfg = pipeline.config_for(H, W, **changes)
+    if chunks is None:
+        cfg = pipeline.config_for(H, W, **changes)
+    else:
+        cfg = stitch.memory_config_for_chunks(H, W, [c.num_frames for c in chunks], **changes)
     if bank is not None:
         cfg = dataclasses.replace(cfg, memory=mem_cfg)
     _compile_cache()
-    print(f"{args.inputs[0] if len(args.inputs) == 1 else f'{len(args.inputs)} chunks'}: {seq.num_frames} frames "
-          f"at {H}x{W}; windows of {cfg.keyframe_interval} frames; memory "
+    what = (f"{args.inputs[0]}: {seq.num_frames} frames" if chunks is None else
+            f"{len(chunks)} chunks ({', '.join(str(c.num_frames) for c in chunks)} frames)")
+    print(f"{what} at {H}x{W}; windows of {cfg.keyframe_interval} frames; memory "
           f"{'off' if args.no_memory else (str(bank_path) if bank_path else 'in-process only')}")
-    bank, (res,) = pipeline.run([seq], cfg, bank, progress=_Progress(not args.quiet))
+    if chunks is None:
+        bank, (res,) = pipeline.run([seq], cfg, bank, progress=_Progress(not args.quiet))
+    else:
+        bank, res, facts = _run_chunks(chunks, cfg, bank, args)
     m = outputs.write_results(out, res, bank if cfg.use_memory else None, pictures=not args.no_pictures)
-    if stitched is not None:
-        outputs.write_json(out / "stitch.json", {"ranges": stitched.ranges, "refined": stitched.refined,
-                                                 "chunk_transforms": stitched.chunk_transforms})
+    if chunks is not None:
+        outputs.write_json(out / "stitch.json", facts)
+        print(f"stitched {res.sequence.num_frames} frames: {len(facts['loops'])} loop closures recalled across "
+              f"chunks, {sum(lc['kept'] for lc in facts['loops'])} kept by the pose graph's consistency check")
     if bank_path is not None and cfg.use_memory:
         memory.save(bank, bank_path, cfg.memory)
     for w in res.windows:
-        print("  " + _window_line(w))
+        print("  " + ("" if "chunk" not in w else f"chunk {w['chunk']}: ") + _window_line(w))
     if m:
         p, r = m["prior"], m["refined"]
         print(f"ATE prior {p['ate']:.5f} -> refined {r['ate']:.5f} ({-m['ate_reduction_pct']:+.1f} %), "
@@ -158,7 +188,8 @@ def _run(args) -> int:
               f"mask IoU {m.get('mask', {}).get('iou', float('nan')):.3f}")
     saved = f"; memory bank {bank_path} ({int(bank.map_valid.sum())} maps)" if bank_path and cfg.use_memory else ""
     print(f"wrote {out}/ (trajectory.txt, trajectory_prior.txt, masks/, static_map.ply, recall.json"
-          f"{', metrics.json' if m else ''}{'' if args.no_pictures else ', pictures'}){saved}")
+          f"{', metrics.json' if m else ''}{', stitch.json' if chunks is not None else ''}"
+          f"{'' if args.no_pictures else ', pictures'}){saved}")
     return 0
 
 
@@ -172,6 +203,8 @@ def _window_line(w: dict) -> str:
                f" / {w['inlier_count']} ICP inliers, RMSE {w['rmse']:.4f}, scale {w['scale']:.3f})")
     elif w["created_map"]:
         mem = f"new map {w['map_id']}" + (f" (candidates {w['candidates']} rejected)" if w["candidates"] else "")
+    elif w["map_id"] >= 0:
+        mem = f"merged into map {w['map_id']} (this visit's map)"
     else:
         mem = "not stored (bank full)"
     ref = "refined" if w["refined"] else "kept prior (gate)"
@@ -248,8 +281,10 @@ def build_parser() -> argparse.ArgumentParser:
                        "static_map.ply, recall.json, metrics.json (with ground truth) and PNG pictures.")
     r.add_argument("inputs", nargs="+", metavar="INPUT",
                    help="a .npz sequence, an image folder (images/ + priors.npz) or a TUM RGB-D folder; "
-                   "several .npz files (or one holding a 'chunk' key): overlapping chunks of one long video, "
-                   "stitched first")
+                   "several .npz files (or one holding a 'chunk' key): overlapping chunks of one long video: "
+                   "the pipeline runs on every chunk threading the memory (recall across chunks), the chunks "
+                   "are aligned by Sim(3) on their shared frames and a Sim(3) pose graph closes loops "
+                   "recalled from memory; stitch.json holds the chunk transforms and loop closures")
     r.add_argument("--out", required=True, metavar="DIR", help="output folder")
     r.add_argument("--memory", metavar="BANK", help="memory bank file: loaded if present, updated, saved atomically")
     r.add_argument("--no-memory", action="store_true", help="no recall / verify / update")

@@ -90,8 +90,10 @@ from cm3d.solvers.factors import masked_median
 
 __all__ = ["Boundary", "LoopClosure", "PoseGraphConfig", "StitchConfig", "StitchError", "StitchResult",
            "align_overlap", "chunk_layout", "concat_chunks", "fuse_frames", "lift_pixels", "load_chunks",
-           "memory_sequence_result", "naive_stitch", "place_poses", "recall_loops", "refine_checked", "refine_poses",
-           "save_chunks", "sim3_pose_graph", "split_chunks", "stitch_chunks", "stitch_with_memory"]
+           "loop_to_prior_frames", "memory_config_for_chunks", "memory_sequence_result", "naive_stitch",
+           "place_chunks", "place_poses", "recall_loops", "refine_checked", "refine_poses",
+           "save_chunks", "sim3_pose_graph", "split_chunks", "stitch_chunks", "stitch_with_memory",
+           "window_frame_change"]
 
 
 class StitchError(ValueError):
@@ -210,7 +212,8 @@ class StitchResult:
         for b in self.boundaries:
             for k in ("scale", "rotation_deg", "rmse_points", "rmse_centres", "rel_rmse_points", "inlier_fraction"):
                 out[f"boundary{b.chunk}_{k}"] = float(getattr(b, k))
-        out.update({f"refine_{k}": v for k, v in self.refinement.items()})
+        out.update({f"refine_{k}": v for k, v in self.refinement.items()
+                    if not isinstance(v, (list, tuple, dict, np.ndarray))})
         return out
 
 
@@ -714,7 +717,11 @@ class PoseGraphConfig:
 
     sigma_rot (rad), sigma_trans (chunk 0's units), sigma_scale (log scale): noise of a consecutive
     overlap constraint; loop_factor: loop constraints (memory recalls) get sigmas this many times
-    larger (one window's cloud registration against a whole overlap's pixels); max_steps: LM steps;
+    larger: one window's cloud registration (a voxel map, 64-256 ICP points, clouds posed by the
+    pipeline's refined window poses) against a whole overlap's pixels. Measured on the loop video
+    at 96x128 (docs/long_video.md): a recall is off by 5-7°, 0.23 m, 7.5 % in scale, i.e. 0.1-0.12
+    per chart component, ~10 overlap sigmas; 20 is twice that, so a recall this coarse barely
+    moves the chain (with 2 it made ATE 2x worse); max_steps: LM steps;
     loop_quantile: a loop constraint is kept only when its discrepancy with the chain of overlap
     constraints is plausible, ``|r|² <= χ²_q(7)`` with ``r`` whitened by the chain's accumulated
     noise plus the loop's own (the usual loop-closure consistency check; 1 keeps every loop)."""
@@ -722,7 +729,7 @@ class PoseGraphConfig:
     sigma_rot: float = 0.01
     sigma_trans: float = 0.01
     sigma_scale: float = 0.01
-    loop_factor: float = 2.0
+    loop_factor: float = 20.0
     max_steps: int = 100
     loop_quantile: float = 0.99
 
@@ -737,8 +744,10 @@ class PoseGraphConfig:
 @dataclasses.dataclass(frozen=True)
 class LoopClosure:
     """A memory recall across chunks: a window of ``chunk`` (its frames, chunk-local) recalled a map
-    that ``other`` created; ``transform`` (4, 4) is the verified Sim(3) from ``chunk``'s frame into
-    ``other``'s; inliers / rmse: the verification's ICP facts."""
+    that a window of ``other`` (``other_frames``) created; ``transform`` (4, 4) is the Sim(3) from
+    ``chunk``'s frame into ``other``'s; inliers / rmse: the verification's ICP facts. ``measured``:
+    the memory's own transform (between the two windows' *refined* frames) when ``transform`` was
+    re-expressed between the chunks' prior frames (:func:`loop_to_prior_frames`), else None."""
 
     chunk: int
     other: int
@@ -746,6 +755,8 @@ class LoopClosure:
     transform: np.ndarray
     inliers: int
     rmse: float
+    other_frames: tuple[int, int] | None = None
+    measured: np.ndarray | None = None
 
 
 def _sim3_exp(p):
@@ -837,7 +848,8 @@ def sim3_pose_graph(G0, A, loops=(), cfg: PoseGraphConfig = PoseGraphConfig()):
             ia.append(lc.other), ib.append(lc.chunk), meas.append(np.asarray(lc.transform, np.float64))
             sig.append(base * cfg.loop_factor)
     facts = {"constraints": len(ia), "loops": len(loops), "loops_kept": kept, "loop_limit": limit,
-             "loop_discrepancy_max": max(discrepancy) if discrepancy else 0.0}
+             "loop_discrepancy_max": max(discrepancy) if discrepancy else 0.0,
+             "loop_discrepancy": discrepancy, "loop_kept": [d2 <= limit for d2 in discrepancy]}
     if kept == 0:  # a chain (a tree) of constraints: the chained transforms satisfy every one exactly
         return chain, {**facts, "cost_initial": 0.0, "cost": 0.0, "steps": 0}
     with jax.enable_x64(True):
@@ -858,23 +870,66 @@ def recall_loops(results, min_gap: int = 2) -> list[LoopClosure]:
     loops = []
     for k, res in enumerate(results):
         for w in res.windows:
-            if w["accepted"] and w["recalled_map"] in creator and k - creator[w["recalled_map"]] >= min_gap:
-                loops.append(LoopClosure(chunk=k, other=creator[w["recalled_map"]], frames=tuple(w["frames"]),
+            made = creator.get(w["recalled_map"])
+            if w["accepted"] and made is not None and k - made[0] >= min_gap:
+                loops.append(LoopClosure(chunk=k, other=made[0], frames=tuple(w["frames"]),
                                          transform=np.asarray(w["transform"], np.float64),
-                                         inliers=int(w["inlier_count"]), rmse=float(w["rmse"])))
+                                         inliers=int(w["inlier_count"]), rmse=float(w["rmse"]), other_frames=made[1]))
             if w["created_map"] and w["map_id"] >= 0:
-                creator.setdefault(w["map_id"], k)
+                creator.setdefault(w["map_id"], (k, tuple(w["frames"])))
     return loops
 
 
-def memory_config_for_chunks(height: int, width: int, num_chunks: int):
-    """The pipeline config for chunks of a long video: :func:`cm3d.pipeline.config_for`, with one
-    window per 20 frames and room for two maps per chunk in the bank."""
+def window_frame_change(chunk: Sequence, refined, frames, config: StitchConfig = StitchConfig()):
+    """The Sim(3) (4, 4) from a window's refined frame to its chunk's prior frame: the window's
+    frames ``[f0, f1]`` (inclusive) are lifted on a pixel grid with the prior poses and with the
+    ``refined`` poses (S, 4, 4) and fitted like an overlap (:func:`align_overlap`: the same pixels
+    of the same frames, no matching). The pipeline refines each window starting from the prior, so
+    this is near the identity; what is left is the window's refinement, as a similarity."""
+    f0, f1 = int(frames[0]), int(frames[1])
+    sl = slice(f0, f1 + 1)
+    with jax.enable_x64(True):
+        prior = (_f(chunk.depth[sl]), _f(chunk.intrinsic[sl]), _f(chunk.cam_to_world[sl]))
+        ref = (_f(chunk.depth[sl]), _f(chunk.intrinsic[sl]), _f(np.asarray(refined)[sl]))
+        D, _ = align_overlap(prior, ref, cfg=config)
+    return np.asarray(D, np.float64)
+
+
+def loop_to_prior_frames(lc: LoopClosure, chunks, results, config: StitchConfig = StitchConfig()) -> LoopClosure:
+    """A loop closure's transform re-expressed between the two chunks' *prior* frames.
+
+    The memory verifies a recall between clouds built from the pipeline's *refined* window poses
+    (the recalling window's, and the creating window's for the map), while the pose graph places the
+    chunks' priors: ``T' = D_other T D_chunk^{-1}``, ``D`` the window's refined -> prior frame change
+    (:func:`window_frame_change`). Without it a loop carries the two windows' refinements as if they
+    were a difference between the chunks (measured on the loop video, ``docs/long_video.md``: the
+    recall's centre error 0.32 m -> 0.19 m in one run, 0.230 -> 0.226 m in another; the recall's own
+    registration error dominates)."""
+    if lc.other_frames is None:
+        raise StitchError(f"loops: chunk {lc.chunk} -> {lc.other} does not name the creating window's frames")
+    Dc = window_frame_change(chunks[lc.chunk], results[lc.chunk].poses, lc.frames, config)
+    Do = window_frame_change(chunks[lc.other], results[lc.other].poses, lc.other_frames, config)
+    T = Do @ np.asarray(lc.transform, np.float64) @ np.linalg.inv(Dc)
+    return dataclasses.replace(lc, transform=T, measured=np.asarray(lc.transform, np.float64))
+
+
+def memory_config_for_chunks(height: int, width: int, chunk_lengths, **changes):
+    """The pipeline config for chunks of a long video: :func:`cm3d.pipeline.config_for` (``changes``
+    passed on), with windows of 20 frames (the paper's) unless that leaves the longest chunk fewer
+    than two (then at most half of it, at least config_for's), and room in a new bank for one map
+    per window of every chunk. chunk_lengths: frames per chunk."""
     from cm3d import pipeline
 
-    cfg = pipeline.config_for(height, width)
-    mem = dataclasses.replace(cfg.memory, max_maps=max(cfg.memory.max_maps, 2 * num_chunks + 2))
-    return dataclasses.replace(cfg, keyframe_interval=20, memory=mem)
+    lengths = [int(n) for n in chunk_lengths]
+    if not lengths or min(lengths) < 2:
+        raise StitchError(f"chunk_lengths: every chunk needs at least 2 frames, got {lengths}")
+    cfg = pipeline.config_for(height, width, **changes)
+    if "keyframe_interval" not in changes:
+        cfg = dataclasses.replace(cfg, keyframe_interval=max(cfg.keyframe_interval, min(20, max(lengths) // 2)))
+    ki = cfg.keyframe_interval
+    windows = sum(-(-(n - 1) // ki) for n in lengths)  # a window ends every ki frames and at the last
+    mem = dataclasses.replace(cfg.memory, max_maps=max(cfg.memory.max_maps, windows))
+    return dataclasses.replace(cfg, memory=mem)
 
 
 def stitch_with_memory(chunks, overlap: int | None = None, config: StitchConfig = StitchConfig(),
@@ -882,57 +937,65 @@ def stitch_with_memory(chunks, overlap: int | None = None, config: StitchConfig 
                        progress=None, use_refined: bool = False) -> StitchResult:
     """Stitch chunks with memory recall across them, then refine the whole trajectory.
 
-    1. every chunk runs through the pipeline (:mod:`cm3d.pipeline`: motion cues, windowed factor
-       graph, memory recall / verify / update) threading **one** memory bank, so a chunk that comes
-       back to an earlier place recalls the earlier chunk's map; chunks are padded to one length
-       (one compiled program);
+    1. every chunk runs through the pipeline (:func:`cm3d.pipeline.run`: motion cues, windowed
+       factor graph, memory recall / verify / update) threading **one** memory bank, so a chunk that
+       comes back to an earlier place recalls the earlier chunk's map;
     2. consecutive chunks are aligned by Sim(3) on their shared frames (as :func:`stitch_chunks`),
        from the chunks' prior poses (``use_refined``: from the pipeline's refined poses instead; at
        96x128 that was worse: the per-chunk refinement's scale and translation errors break the
        alignment, ATE 0.154 against 0.022 on the loop video, moderate noise);
     3. each accepted recall of a chunk at least two chunks earlier is a Sim(3) loop constraint
-       (:func:`recall_loops`), and the chunk transforms are refined by a Sim(3) pose graph
-       (:func:`sim3_pose_graph`): overlap + loop constraints, scale included, so the drift the chain
-       of alignments accumulates is spread back along the loop;
+       (:func:`recall_loops`), re-expressed between the chunks' prior frames
+       (:func:`loop_to_prior_frames`; not with ``use_refined``), and the chunk transforms are
+       refined by a Sim(3) pose graph (:func:`sim3_pose_graph`): overlap + loop constraints, scale
+       included, so the drift the chain of alignments accumulates is spread back along the loop;
+       a loop inconsistent with the chain (χ² check) is left out;
     4. the chunks are placed by the refined transforms and fused.
 
     pipeline_config: the pipeline's config (None: :func:`memory_config_for_chunks`); bank: a memory
-    bank to start from (e.g. loaded with ``--memory``). Returns :class:`StitchResult` (method
-    ``"cm3d-memory"``) with ``loops``, ``bank`` and the per-chunk pipeline ``results`` filled in.
+    bank to start from (e.g. loaded with ``--memory``); progress: optional ``(stage, done, total)``
+    callable (:func:`cm3d.pipeline.run`'s). Returns :class:`StitchResult` (method ``"cm3d-memory"``)
+    with ``loops``, ``bank`` and the per-chunk pipeline ``results`` filled in; ``refinement`` holds
+    the pose graph's facts (per loop: ``loop_discrepancy``, ``loop_kept``).
     """
-    from cm3d import memory as cmem
     from cm3d import pipeline
 
     chunks = _check_chunks(chunks)
     ranges, overlaps, ts = chunk_layout(chunks, overlap)
     H, W = chunks[0].image_size
-    cfg = pipeline_config or memory_config_for_chunks(H, W, len(chunks))
-    length = max(pipeline.padded_length(c.num_frames, cfg) for c in chunks)
-    state, results = None, []
+    cfg = pipeline_config or memory_config_for_chunks(H, W, [c.num_frames for c in chunks])
     t0 = time.perf_counter()
-    for k, c in enumerate(chunks):
-        x = jax.tree.map(jnp.asarray, pipeline.pad_inputs(pipeline.prepare(c, cfg), length))
-        if state is None:
-            state = pipeline.init_state(x, cfg, bank if bank is not None else cmem.empty(cfg.memory))
-        state, out = pipeline.run_sequence(state, x, cfg)
-        results.append(pipeline.collect(out, c, cfg))
-        if progress is not None:
-            progress(k + 1, len(chunks))
+    bank, results = pipeline.run(list(chunks), cfg, bank, progress=progress)
     t_pipe = time.perf_counter() - t0
     refined = [c.replace(cam_to_world=r.poses) for c, r in zip(chunks, results)] if use_refined else chunks
     with jax.enable_x64(True):
         A, G0, bounds = _boundaries(refined, ranges, overlaps, None, None, config, fit=True)
     loops = recall_loops(results)
+    if not use_refined:
+        loops = [loop_to_prior_frames(lc, chunks, results, config) for lc in loops]
     G, facts = sim3_pose_graph(G0, A, loops, graph)
     with jax.enable_x64(True):
         seq, frame_chunk = _merge(refined, ranges, overlaps, ts, G, "cm3d-memory")
         chained, _ = _merge(refined, ranges, overlaps, ts, G0, "cm3d-memory")
-    facts = {**facts, "pipeline_s": t_pipe, "windows": sum(len(r.windows) for r in results),
-             "recalls": sum(int(w["accepted"]) for r in results for w in r.windows)}
+    facts = {**facts, "chained_transforms": G0, "pipeline_s": t_pipe, "windows": sum(len(r.windows) for r in results),
+             "recalls": sum(int(w["accepted"]) for r in results for w in r.windows), "use_refined": bool(use_refined)}
     return StitchResult(sequence=seq, poses_aligned=chained.cam_to_world, poses_refined=seq.cam_to_world,
                         chunk_transforms=G, ranges=ranges, frame_chunk=frame_chunk, boundaries=bounds,
-                        refined=bool(loops), refinement=facts, method="cm3d-memory", loops=tuple(loops),
-                        bank=state.bank, results=tuple(results))
+                        refined=facts.get("loops_kept", 0) > 0, refinement=facts, method="cm3d-memory",
+                        loops=tuple(loops), bank=bank, results=tuple(results))
+
+
+def place_chunks(chunks, transforms, overlap: int | None = None) -> Sequence:
+    """The merged sequence of chunks placed by given Sim(3)s ``transforms`` (K, 4, 4), chunk k ->
+    common frame (e.g. a pose graph's, or ground truth's for a reference), fused as in
+    :func:`stitch_chunks`."""
+    chunks = _check_chunks(chunks)
+    ranges, overlaps, ts = chunk_layout(chunks, overlap)
+    G = np.asarray(transforms, np.float64)
+    if G.shape != (len(chunks), 4, 4):
+        raise StitchError(f"transforms: expected shape ({len(chunks)}, 4, 4) (one per chunk), got {G.shape}")
+    with jax.enable_x64(True):
+        return _merge(chunks, ranges, overlaps, ts, G, "placed")[0]
 
 
 def memory_sequence_result(res: StitchResult, chunks):
@@ -944,7 +1007,8 @@ def memory_sequence_result(res: StitchResult, chunks):
 
     if res.method != "cm3d-memory":
         raise StitchError(f"res: expected a stitch_with_memory result, got method {res.method!r}")
-    prior = stitch_chunks(chunks, refine=False).sequence.cam_to_world
+    prior = (stitch_chunks(chunks, refine=False).sequence.cam_to_world if res.refinement.get("use_refined")
+             else res.poses_aligned)  # the chained overlap alignment of the priors
     masks = np.zeros(res.sequence.depth.shape, bool)
     windows = []
     for k, ((a, b), r) in enumerate(zip(res.ranges, res.results)):

@@ -27,8 +27,17 @@ Compared: naive stitching, overlap stitching (Sim(3) alignment, as above), and
 each recall of a map made two or more chunks earlier a Sim(3) loop constraint, and a Sim(3) pose
 graph over the chunk transforms (overlap + loop constraints). Keys: ``ate_loop_naive``,
 ``ate_loop_stitch``, ``ate_loop_chained`` (the chain of overlap alignments before the pose graph),
-``ate_loop`` (+ loop closure from memory recall), ``loops_recalled``, ``loop_improvement`` (= 1 − ate_loop /
-ate_loop_stitch), ``loop_pipeline_s``.
+``ate_loop`` (+ loop closure from memory recall), ``loops_recalled``, ``loops_kept``,
+``loop_improvement`` (= 1 − ate_loop / ate_loop_stitch), ``loop_pipeline_s``; and what limits it:
+``ate_loop_true_transforms`` (every chunk placed by its ground-truth Sim(3): the floor of any chunk
+placement, loop or not), ``ate_loop_forced`` (the recalled loops forced in at σ × 2, as accurate as
+an overlap, no consistency check), ``ate_loop_true_constraint`` (the same with the loop at its
+ground-truth value), and the first loop's Sim(3) errors against the truth,
+``loop_err_{rot_deg,log_scale,centre_m}_{memory,prior_frames,chain}`` (the memory's transform
+between the windows' refined frames, the same re-expressed between the chunks' prior frames as the
+pose graph uses it, and the chain of overlap alignments); the straight
+video through the same memory stitching: ``ate_straight_memory`` (vs ``ate_straight_chained``),
+``loops_recalled_straight``, ``loops_kept_straight``.
 """
 
 import os
@@ -36,6 +45,7 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # OpenBLAS threads spin on shared cores
 
 import argparse  # noqa: E402
+import dataclasses  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -74,8 +84,32 @@ def run_level(images, gt, level, args, cfg, refine: bool):
     return row
 
 
+def true_chunk_transforms(chunks):
+    """Ground-truth Sim(3) chunk k -> chunk 0's prior frame: a chunk's prior frame is its first
+    ground-truth camera scaled by its ``prior_scale`` (:func:`cm3d.data.synthetic.make_priors`)."""
+    def to_world(c):
+        s = c.meta["prior_scale"]
+        return c.gt.cam_to_world[0] @ np.diag([1 / s, 1 / s, 1 / s, 1.0])
+
+    W0 = np.linalg.inv(to_world(chunks[0]))
+    return np.stack([W0 @ to_world(c) for c in chunks])
+
+
+def sim3_errors(T, truth, poses, unit):
+    """Errors of a Sim(3) chunk b -> chunk a against the truth: rotation (deg), log-scale, and the
+    mean centre error (metres: ``unit`` chunk-a units per metre) of chunk b's ``poses`` placed by each."""
+    from scipy.spatial.transform import Rotation
+
+    sT, sG = np.cbrt(np.linalg.det(T[:3, :3])), np.cbrt(np.linalg.det(truth[:3, :3]))
+    rot = float(np.rad2deg(Rotation.from_matrix((T[:3, :3] / sT).T @ (truth[:3, :3] / sG)).magnitude()))
+    ca, cb = poses[:, :3, 3] @ T[:3, :3].T + T[:3, 3], poses[:, :3, 3] @ truth[:3, :3].T + truth[:3, 3]
+    return {"rot_deg": rot, "log_scale": float(np.log(sT / sG)),
+            "centre_m": float(np.mean(np.linalg.norm(ca - cb, axis=1)) / unit)}
+
+
 def run_loop(args, level):
-    """The loop variant: naive vs overlap stitching vs overlap + loop closure from memory recall."""
+    """The loop variant: naive vs overlap stitching vs overlap + loop closure from memory recall,
+    with the loop constraint measured against the ground truth."""
     cfg = synthetic.WorldConfig(height=args.height, width=args.width)
     t0 = time.perf_counter()
     chunks, images, gt = synthetic.generate_long_video(args.scene, 0, args.frames, args.chunk, args.overlap, level,
@@ -88,15 +122,70 @@ def run_loop(args, level):
     t0 = time.perf_counter()
     mem = stitch.stitch_with_memory(chunks)
     t_mem = time.perf_counter() - t0
-    loop_dist = float(np.linalg.norm(gt.cam_to_world[-1, :3, 3] - gt.cam_to_world[0, :3, 3]))
-    return {"ate_loop_naive": ev(naive.sequence.cam_to_world), "ate_loop_stitch": ev(aligned.sequence.cam_to_world),
-            "ate_loop_chained": ev(mem.poses_aligned), "ate_loop": ev(mem.sequence.cam_to_world),
-            "loops_recalled": len(mem.loops), "loops_kept": mem.refinement["loops_kept"],
-            "loop_discrepancy_max": mem.refinement["loop_discrepancy_max"], "loop_limit": mem.refinement["loop_limit"],
-            "loop_recalls": mem.refinement["recalls"],
-            "loop_windows": mem.refinement["windows"], "loop_pipeline_s": mem.refinement["pipeline_s"],
-            "loop_time_s": t_mem, "loop_render_s": t_render, "loop_end_to_start_m": loop_dist,
-            "loop_pairs": [f"{lc.chunk}->{lc.other}" for lc in mem.loops], "loop_level": level}
+    f = mem.refinement
+    G0, Gt = f["chained_transforms"], true_chunk_transforms(chunks)
+    out = {"ate_loop_naive": ev(naive.sequence.cam_to_world), "ate_loop_stitch": ev(aligned.sequence.cam_to_world),
+           "ate_loop_chained": ev(mem.poses_aligned), "ate_loop": ev(mem.sequence.cam_to_world),
+           # the floor of any chunk placement: every chunk placed by its ground-truth Sim(3)
+           "ate_loop_true_transforms": ev(stitch.place_chunks(chunks, Gt).cam_to_world),
+           "loops_recalled": len(mem.loops), "loops_kept": f["loops_kept"],
+           "loop_discrepancy_max": f["loop_discrepancy_max"], "loop_limit": f["loop_limit"],
+           "loop_recalls": f["recalls"], "loop_windows": f["windows"], "loop_pipeline_s": f["pipeline_s"],
+           "loop_time_s": t_mem, "loop_render_s": t_render,
+           "loop_end_to_start_m": float(np.linalg.norm(gt.cam_to_world[-1, :3, 3] - gt.cam_to_world[0, :3, 3])),
+           "loop_pairs": [f"{lc.chunk}->{lc.other}" for lc in mem.loops], "loop_level": level}
+    if mem.loops:
+        lc = mem.loops[0]
+        a, b = lc.other, lc.chunk
+        truth = np.linalg.inv(Gt[a]) @ Gt[b]
+        poses = chunks[b].cam_to_world[lc.frames[0]:lc.frames[1] + 1]
+        unit = chunks[a].meta["prior_scale"]
+        for name, T in (("memory", lc.measured), ("prior_frames", lc.transform),
+                        ("chain", np.linalg.inv(G0[a]) @ G0[b])):
+            for k, v in sim3_errors(T, truth, poses, unit).items():
+                out[f"loop_err_{k}_{name}"] = v
+        # every loop forced in (no consistency check) at σ x 2, as if as accurate as an overlap
+        A = np.stack([np.eye(4)] + [np.linalg.inv(G0[k - 1]) @ G0[k] for k in range(1, len(chunks))])
+        G, _ = stitch.sim3_pose_graph(G0, A, mem.loops, stitch.PoseGraphConfig(loop_quantile=1.0, loop_factor=2.0))
+        out["ate_loop_forced"] = ev(stitch.place_chunks(chunks, G).cam_to_world)
+        truth_loops = [dataclasses.replace(x, transform=np.linalg.inv(Gt[x.other]) @ Gt[x.chunk]) for x in mem.loops]
+        G, _ = stitch.sim3_pose_graph(G0, A, truth_loops, stitch.PoseGraphConfig(loop_quantile=1.0, loop_factor=2.0))
+        out["ate_loop_true_constraint"] = ev(stitch.place_chunks(chunks, G).cam_to_world)
+    return out
+
+
+def run_straight_memory(images, gt, level, args, cfg):
+    """The straight (non-loop) video through :func:`cm3d.stitch.stitch_with_memory`: what loop
+    closures from memory recall do where the camera does not come back."""
+    ts = np.arange(len(images)) / cfg.fps
+    chunks = synthetic.make_chunk_priors(images, gt, args.chunk, args.overlap, level, seed=args.scene, timestamps=ts)
+    ev = lambda P: metrics.evaluate_trajectories(ts, gt.cam_to_world, ts, np.asarray(P))["ate"]  # noqa: E731
+    mem = stitch.stitch_with_memory(chunks)
+    return {"ate_straight_memory": ev(mem.sequence.cam_to_world), "ate_straight_chained": ev(mem.poses_aligned),
+            "loops_recalled_straight": len(mem.loops), "loops_kept_straight": mem.refinement["loops_kept"]}
+
+
+def print_loop(lp):
+    print(f"\nloop variant ({lp['loop_level']} noise; the camera ends {lp['loop_end_to_start_m']:.2f} m from its "
+          f"start): {lp['loops_recalled']} loop closures recalled across chunks {lp['loop_pairs']} "
+          f"({lp['loops_kept']} kept by the consistency check: worst discrepancy {lp['loop_discrepancy_max']:.1f} "
+          f"vs chi2 limit {lp['loop_limit']:.1f}; {lp['loop_recalls']} recalls in {lp['loop_windows']} windows; "
+          f"pipeline {lp['loop_pipeline_s']:.0f} s)\n")
+    head = (f"{'ATE naive':>10} {'overlap':>9} {'chained':>9} {'+ loop closure':>15} | {'vs overlap':>10} | "
+            f"{'forced σx2':>11} {'true loop':>10} {'true chunks':>11}")
+    print(head + "\n" + "-" * len(head))
+    na = lambda k: f"{lp[k]:.4f}" if k in lp else "-"  # noqa: E731
+    print(f"{lp['ate_loop_naive']:>10.4f} {lp['ate_loop_stitch']:>9.4f} {lp['ate_loop_chained']:>9.4f} "
+          f"{lp['ate_loop']:>15.4f} | {100 * lp['loop_improvement']:>9.1f}% | {na('ate_loop_forced'):>11} "
+          f"{na('ate_loop_true_constraint'):>10} {lp['ate_loop_true_transforms']:>11.4f}")
+    if "loop_err_rot_deg_chain" in lp:
+        print("\nthe first loop's Sim(3) against the ground truth (rotation, log-scale, mean centre error of the "
+              "recalling window's cameras):")
+        for name, label in (("memory", "memory recall (refined window frames)"),
+                            ("prior_frames", "memory recall in the chunks' prior frames"),
+                            ("chain", "chain of overlap alignments")):
+            print(f"  {label:<44} {lp[f'loop_err_rot_deg_{name}']:6.2f} deg  {lp[f'loop_err_log_scale_{name}']:+.4f}  "
+                  f"{lp[f'loop_err_centre_m_{name}']:.4f} m")
 
 
 def format_table(rows):
@@ -174,16 +263,13 @@ def main() -> None:
         if args.loop_level not in LEVELS:
             ap.error(f"--loop-level: unknown level {args.loop_level!r}; choose from {', '.join(LEVELS)} or off")
         lp = run_loop(args, args.loop_level)
-        print(f"\nloop variant ({args.loop_level} noise; the camera ends {lp['loop_end_to_start_m']:.2f} m from its "
-              f"start): {lp['loops_recalled']} loop closures recalled across chunks {lp['loop_pairs']} "
-              f"({lp['loops_kept']} kept by the consistency check: worst discrepancy {lp['loop_discrepancy_max']:.1f} "
-              f"vs chi2 limit {lp['loop_limit']:.1f}; {lp['loop_recalls']} recalls in {lp['loop_windows']} windows; "
-              f"pipeline {lp['loop_pipeline_s']:.0f} s)\n")
-        head = f"{'ATE naive':>10} {'overlap':>9} {'chained':>15} {'+ loop closure':>15} | {'vs overlap':>10}"
-        print(head + "\n" + "-" * len(head))
         lp["loop_improvement"] = 1.0 - lp["ate_loop"] / lp["ate_loop_stitch"]
-        print(f"{lp['ate_loop_naive']:>10.4f} {lp['ate_loop_stitch']:>9.4f} {lp['ate_loop_chained']:>15.4f} "
-              f"{lp['ate_loop']:>15.4f} | {100 * lp['loop_improvement']:>9.1f}%")
+        print_loop(lp)
+        lp.update(run_straight_memory(images, gt, args.loop_level, args, cfg))
+        print(f"\nstraight video through the same memory stitching ({args.loop_level}): "
+              f"{lp['loops_recalled_straight']} loop closures recalled, {lp['loops_kept_straight']} kept; "
+              f"ATE {lp['ate_straight_chained']:.4f} "
+              f"(chained) -> {lp['ate_straight_memory']:.4f} (pose graph)")
         out.update({k: v for k, v in lp.items() if isinstance(v, (int, float)) and not isinstance(v, bool)})
     if args.json:
         write_json(args.json, out)

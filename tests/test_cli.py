@@ -200,28 +200,45 @@ def test_generate_and_run_folder_inputs(tmp_path, fmt, capsys):
         assert "not empty" in capsys.readouterr().err
 
 
-def test_run_chunks_from_several_files_or_one(tmp_path, capsys):
+def test_run_chunks_with_memory_from_several_files_or_one(tmp_path, capsys):
+    """Chunks of one video: the pipeline per chunk threading the memory, overlap alignment, the usual
+    outputs plus stitch.json; the saved bank is recalled by a second run (the one-file form)."""
     from cm3d import stitch
     from cm3d.data import synthetic
 
     wcfg = synthetic.WorldConfig(height=48, width=64, supersample=1)
     images, gt = synthetic.render_ground_truth(synthetic.make_scene(0, wcfg), 0, 8, wcfg)
-    # 8 frames as 2 chunks of 5 sharing 2: the stitched video has the shapes of the other tests' (one program)
+    # 8 frames as 2 chunks of 5 sharing 2: each chunk pads to the other CLI tests' 8 frames (one program)
     chunks = synthetic.make_chunk_priors(images, gt, 5, 2, "slight", seed=0, timestamps=np.arange(8) / wcfg.fps)
-    assert len(chunks) == 2
     paths = [tmp_path / f"c{k}.npz" for k in range(2)]
     for p, c in zip(paths, chunks):
         io.save_sequence(p, c)
     stitch.save_chunks(tmp_path / "all.npz", chunks)
-    trajs = []
-    for name, inputs in (("files", paths), ("one", [tmp_path / "all.npz"])):
-        out = tmp_path / name
-        assert cli.main(["run", *map(str, inputs), "--out", str(out), "--quiet", "--no-pictures", "--no-memory"]) == 0
-        assert "8 frames at 48x64" in capsys.readouterr().out
-        s = json.loads((out / "stitch.json").read_text())
-        assert [list(r) for r in s["ranges"]] == [[0, 5], [3, 8]]
-        trajs.append(io.read_tum(out / "trajectory.txt")[1])
-    np.testing.assert_allclose(trajs[0], trajs[1], atol=1e-6)  # the same chunks, the same answer
+    bank = tmp_path / "bank.cm3d"
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert cli.main(["run", *map(str, paths), "--out", str(a), "--memory", str(bank), "--quiet"]) == 0
+    assert "2 chunks (5, 5 frames) at 48x64" in capsys.readouterr().out
+    for name in ("trajectory.txt", "trajectory_prior.txt", "static_map.ply", "metrics.json", "stitch.json",
+                 "trajectory.png", "topdown_map.png"):
+        assert (a / name).is_file(), name
+    assert len(list((a / "masks").glob("*.png"))) == 8 and bank.is_file()
+    s = json.loads((a / "stitch.json").read_text())
+    assert [list(r) for r in s["ranges"]] == [[0, 5], [3, 8]] and s["loops"] == []
+    rec = json.loads((a / "recall.json").read_text())["windows"]
+    assert [w["chunk"] for w in rec] == [0, 1] and [w["frames"] for w in rec] == [[0, 4], [3, 7]]
+    assert rec[0]["created_map"]
+    # the trajectory is the chunks' priors aligned on their overlap: the stitching library's answer
+    ref = stitch.stitch_chunks(chunks, refine=False).sequence.cam_to_world
+    traj = io.read_tum(a / "trajectory.txt")[1]
+    np.testing.assert_allclose(traj, ref, atol=1e-6)
+    assert json.loads((a / "metrics.json").read_text())["refined"]["pairs"] == 8
+    # the one-file form with the saved bank: chunk 0 recalls the map the first run stored
+    assert cli.main(["run", str(tmp_path / "all.npz"), "--out", str(b), "--memory", str(bank), "--quiet",
+                     "--no-pictures"]) == 0
+    assert "chunk 0: frames    0-   4: recalled map 0" in capsys.readouterr().out
+    rec = json.loads((b / "recall.json").read_text())["windows"]
+    assert rec[0]["accepted"] and rec[0]["recalled_map"] == 0
+    np.testing.assert_allclose(io.read_tum(b / "trajectory.txt")[1], traj, atol=1e-6)  # no loop: same chain
     # a chunk file among other files is refused with a one-line error
     assert cli.main(["run", str(tmp_path / "all.npz"), str(paths[0]), "--out", str(tmp_path / "x")]) == 2
     assert "loaded alone" in capsys.readouterr().err

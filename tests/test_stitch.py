@@ -1,5 +1,7 @@
 """Long-video stitching (cm3d.stitch): Sim(3) alignment, chaining, naive baseline, errors, chunk files."""
 
+import dataclasses
+
 import jax
 import numpy as np
 import pytest
@@ -211,7 +213,7 @@ def test_sim3_pose_graph_closes_a_loop():
     G0 = np.stack([np.linalg.multi_dot([np.eye(4)] + [A[j] for j in range(1, k + 1)]) if k else np.eye(4)
                    for k in range(K)])
     loop = stitch.LoopClosure(chunk=K - 1, other=0, frames=(0, 20), transform=G_true[K - 1], inliers=100, rmse=0.01)
-    G, facts = stitch.sim3_pose_graph(G0, A, [loop], stitch.PoseGraphConfig(loop_quantile=1.0))
+    G, facts = stitch.sim3_pose_graph(G0, A, [loop], stitch.PoseGraphConfig(loop_quantile=1.0, loop_factor=2.0))
     err = lambda X: float(np.linalg.norm(X[K - 1][:3, 3] - G_true[K - 1][:3, 3]))  # noqa: E731
     assert facts["loops"] == 1 and facts["cost"] < facts["cost_initial"]
     assert err(G) < 0.5 * err(G0)
@@ -220,18 +222,22 @@ def test_sim3_pose_graph_closes_a_loop():
     G, facts = stitch.sim3_pose_graph(G0, A_true, [loop])
     np.testing.assert_allclose(G, G_true, atol=1e-6)
     assert facts["cost"] < 1e-12
-    # the consistency check: this drift (5 boundaries of 0.6°, 2 cm, 2 % scale) is far beyond the
-    # overlap noise model (σ 0.01), so by default the loop is refused and the chain kept
+    # the consistency check: with the default (coarse) loop noise this drift is plausible and the loop
+    # is kept with a small weight; a loop to the wrong place (30°, 3 units off) is refused, chain kept
     G, facts = stitch.sim3_pose_graph(G0, A, [loop])
+    assert facts["loops_kept"] == 1 and facts["loop_kept"] == [True] and err(G) < err(G0)
+    wrong = dataclasses.replace(loop, transform=G_true[K - 1] @ _sim3(rng, 0.5, 3.0, 0.0))
+    G, facts = stitch.sim3_pose_graph(G0, A, [wrong])
     assert facts["loops_kept"] == 0 and facts["loop_discrepancy_max"] > facts["loop_limit"]
     np.testing.assert_allclose(G, G0, atol=1e-9)
     with pytest.raises(stitch.StitchError, match="distinct chunks"):
         stitch.sim3_pose_graph(G0, A, [stitch.LoopClosure(2, 2, (0, 1), np.eye(4), 0, 0.0)])
 
 
-def test_recall_loops_from_window_records():
+def test_recall_loops_from_window_records(noise_free):
     """Only accepted recalls of maps created two or more chunks earlier are loop closures, tied to
-    the creating chunk."""
+    the creating chunk and window; the memory's transform (between the windows' refined frames) is
+    re-expressed between the chunks' prior frames."""
     from types import SimpleNamespace
 
     def win(acc, rec, created, map_id, T=np.eye(4)):
@@ -246,6 +252,22 @@ def test_recall_loops_from_window_records():
     loops = stitch.recall_loops(results)
     assert [(lc.chunk, lc.other) for lc in loops] == [(3, 1)]
     np.testing.assert_array_equal(loops[0].transform, T)
+    assert loops[0].other_frames == (0, 20)
+    # refined windows = the priors moved by known rigid motions Q (depth unchanged): the loop in prior
+    # frames is Q_other^-1 T Q_chunk, whatever the window's refinement did
+    chunks = noise_free[0][:2]
+    rng = np.random.default_rng(1)
+    Q = [_sim3(rng, 0.05, 0.1, 0.0) for _ in chunks]
+    with jax.enable_x64(True):
+        res = [SimpleNamespace(poses=np.asarray(stitch.place_poses(stitch._f(q), stitch._f(c.cam_to_world))))
+               for q, c in zip(Q, chunks)]
+    lc = stitch.LoopClosure(chunk=1, other=0, frames=(0, OVERLAP - 1), transform=T, inliers=50, rmse=0.01,
+                            other_frames=(CHUNK - OVERLAP, CHUNK - 1))
+    fixed = stitch.loop_to_prior_frames(lc, chunks, res)
+    np.testing.assert_allclose(fixed.transform, np.linalg.inv(Q[0]) @ T @ Q[1], atol=1e-6)
+    np.testing.assert_array_equal(fixed.measured, T)
+    with pytest.raises(stitch.StitchError, match="creating window"):
+        stitch.loop_to_prior_frames(dataclasses.replace(lc, other_frames=None), chunks, res)
 
 
 def test_memory_sequence_result_for_the_writers(video):
