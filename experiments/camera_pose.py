@@ -184,6 +184,11 @@ def scene_row(scene: int, frames: int, wcfg, quick: bool, use_cache: bool = Fals
     return row
 
 
+def recalled_cell(value) -> str:
+    """The table's ``recalled`` column: a scene's yes / no, or the fraction on the mean row."""
+    return f"{value:.2f}" if isinstance(value, float) else ("yes" if value else "no")
+
+
 def format_table(rows) -> str:
     head = (f"{'scene':>5} | {'ATE prior':>9} {'PnP':>8} {'no mem':>8} {'memory':>8} | {'RPEt prior':>10} "
             f"{'PnP':>8} {'no mem':>8} {'memory':>8} | {'RPEr prior':>10} {'PnP':>7} {'no mem':>7} {'memory':>7} | "
@@ -191,7 +196,7 @@ def format_table(rows) -> str:
     lines = [head, "-" * len(head)]
     for r in rows:
         name = r["scene"] if isinstance(r["scene"], str) else f"{r['scene']:d}"
-        rec = f"{r['recalled']:.2f}" if isinstance(r["recalled"], float) else ("yes" if r["recalled"] else "no")
+        rec = recalled_cell(r["recalled"])
         lines.append(
             f"{name:>5} | " + " ".join(f"{r['ate_' + m]:>{9 if m == 'prior' else 8}.5f}" for m in METHODS)
             + " | " + " ".join(f"{r['rpe_trans_' + m]:>{10 if m == 'prior' else 8}.5f}" for m in METHODS)

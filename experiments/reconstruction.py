@@ -43,7 +43,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from camera_pose import LEVEL, mean_figures, parse_args, revisit_runs, write_figures  # noqa: E402
+from camera_pose import LEVEL, mean_figures, parse_args, recalled_cell, revisit_runs, write_figures  # noqa: E402
 
 VARIANTS = ("no_memory", "memory", "update")
 
@@ -157,7 +157,7 @@ def format_table(rows) -> str:
             f"{'update':>7} | recalled")
     lines = [head, "-" * len(head)]
     for r in rows:
-        rec = f"{r['recalled']:.2f}" if isinstance(r["recalled"], float) else ("yes" if r["recalled"] else "no")
+        rec = recalled_cell(r["recalled"])
         lines.append(
             f"{r['scene']:>5} | {r['acc_no_memory']:>10.4f} {r['acc_memory']:>8.4f} {r['acc_update']:>8.4f} | "
             f"{r['comp_no_memory']:>11.4f} {r['comp_memory']:>8.4f} {r['comp_update']:>8.4f} | "
