@@ -14,8 +14,12 @@ Recognition (:func:`identify`, pure and vmappable over queries): hashed 2D :func
 2-point hypotheses about both frames' estimated up axes: :func:`up_axis`, :func:`upright_pairs`)
 -> of the best candidate's poses, the one with the most colour-consistent overlap -> Sim(3) ICP,
 accepted on keypoint inliers, ICP inlier count / fitness / RMSE and colour agreement
-(:func:`verify`). :func:`remember` then updates the recalled map (:func:`update_map`) or stores a
-new one. Every visit has its own unknown scale, so all transforms are Sim(3).
+(:func:`verify`). Optionally (``cfg.fallback_yaws > 0``, off by default) a query the keypoint path
+rejects gets a keypoint-free check of the same candidate: yaw hypotheses about both clouds' up axes
+with scale from their floor-to-ceiling spans and translation from FFT-correlated wall occupancy grids
+(:func:`global_hypotheses`), colour-gated Sim(3) ICP, stricter thresholds (:func:`_fallback_stage`).
+:func:`remember` then updates the recalled map (:func:`update_map`) or stores a new one. Every visit
+has its own unknown scale, so all transforms are Sim(3).
 
 Capacity policy: inserting into a full bank is refused. The pure :func:`insert_map` returns the
 bank unchanged and ``map_id = -1``; the host-side :func:`add_map` raises :class:`MemoryFullError`.
@@ -105,6 +109,16 @@ class MemoryConfig:
     min_colour_agreement: float = 0.725  # verification: share of colour-consistent ICP inliers
     grid_per_cell: int = 3  # ICP neighbour search: points looked at per grid cell (see GRID_CELL)
     verification: str = "full"  # "none" (2D recall only), "keypoints" (+ 3D RANSAC), "full" (+ ICP)
+    # keypoint-free fallback (see global_hypotheses / _fallback_stage): when the keypoint path rejects, its
+    # best candidate is registered from the clouds alone (+ its RANSAC poses) and accepted on stricter thresholds
+    fallback_yaws: int = 0  # yaw hypotheses about the shared up axis (0: no fallback)
+    fallback_grid: int = 64  # cells per side of the horizontal occupancy grids correlated by FFT
+    fallback_points: int = 1024  # query wall voxels rasterised per yaw (an even subsample)
+    fallback_refine: int = 4  # hypotheses refined by colour-gated ICP (the best screened ones)
+    fallback_min_fitness: float = 0.8  # fallback acceptance (tuned like the above): ICP fitness ...
+    fallback_max_rmse: float = 0.6  # ... inlier RMSE (map voxels) ...
+    fallback_colour_difference: float = 15.0  # ... and the share of inliers within this RGB distance ...
+    fallback_min_colour: float = 0.7  # ... at least this
 
     def __post_init__(self):
         if self.descriptor_3d not in DESCRIPTOR_3D_DIMS:
@@ -120,6 +134,9 @@ class MemoryConfig:
             raise ValueError("MemoryConfig: top_k, max_maps, max_points and max_keyframes must be >= 1")
         if self.max_keypoints < 3 or self.icp_points < 3 or self.ransac_hypotheses < 1:
             raise ValueError("MemoryConfig: max_keypoints and icp_points must be >= 3, ransac_hypotheses >= 1")
+        if self.fallback_yaws < 0 or self.fallback_grid < 8 or self.fallback_points < 3 or self.fallback_refine < 1:
+            raise ValueError("MemoryConfig: fallback_yaws must be >= 0, fallback_grid >= 8, fallback_points >= 3, "
+                             "fallback_refine >= 1")
         if self.upright_hypotheses < 0:
             raise ValueError(f"MemoryConfig.upright_hypotheses: must be >= 0, got {self.upright_hypotheses}")
         if len(self.up_prior) != 3 or not 0 < float(np.linalg.norm(self.up_prior)) < np.inf:
@@ -874,6 +891,161 @@ def _refine_and_decide(bank, m, entry: MapEntry, Ts, scales, matches, inliers, c
     return _decide(bank, m, Ts[g], scales[g], matches, inliers[g], icp, cfg)
 
 
+# ----------------------------------------------------------------------------------------------
+# Keypoint-free fallback: global registration of the two static clouds
+
+
+def height_range(z, valid, lo: float = 0.05, hi: float = 0.95):
+    """Robust floor and ceiling heights (the ``lo`` / ``hi`` quantiles of the valid heights z (N,))."""
+    zz = jnp.where(valid, z, jnp.nan)
+    return jnp.nanquantile(zz, lo), jnp.nanquantile(zz, hi)
+
+
+def _raster(xy, w, origin, cell, size: int):
+    """Occupancy grid (size, size) of the points xy (N, 2) with weights w (N,) (0 outside the grid)."""
+    ij = jnp.floor((xy - origin) / cell).astype(jnp.int32)
+    ok = jnp.all((ij >= 0) & (ij < size), -1)
+    flat = jnp.where(ok, ij[:, 0] * size + ij[:, 1], 0)
+    return jnp.zeros(size * size, jnp.float32).at[flat].add(jnp.where(ok, w, 0.0)).reshape(size, size)
+
+
+def global_hypotheses(src, src_normals, src_valid, dst, dst_normals, dst_valid, frame_src, frame_dst, cell,
+                      num_yaws: int, grid: int = 64, num_points: int = 1024, scale_range=(0.25, 4.0)):
+    """Sim(3) hypotheses src -> dst (two static clouds of one room) without any descriptor match.
+
+    Both clouds are put in their upright frames (``frame_*`` = :func:`upright_frame`: the rotation is a
+    yaw about up); the scale is the ratio of their floor-to-ceiling spans (:func:`height_range`), the
+    vertical offset aligns those spans; for each of ``num_yaws`` yaws (evenly spaced, offset so that
+    the clouds' dominant wall directions (:func:`wall_direction`) agree: 4 yaws are a box room's 4
+    orientations) the horizontal occupancy grids of the *wall* points (normal within 60 deg of
+    horizontal; ``grid`` x ``grid`` cells of ``cell`` dst units, ``num_points`` src wall points) are
+    cross-correlated by FFT and the peak gives the horizontal translation.
+    Returns (transforms (Y, 4, 4), correlation peaks (Y,))."""
+    src, dst = jnp.asarray(src, jnp.float32), jnp.asarray(dst, jnp.float32)
+    src_valid, dst_valid = jnp.asarray(src_valid, bool), jnp.asarray(dst_valid, bool)
+    up_s, up_d = frame_src[2], frame_dst[2]
+    us, ud = src @ frame_src.T, dst @ frame_dst.T
+    lo_s, hi_s = height_range(us[:, 2], src_valid)
+    lo_d, hi_d = height_range(ud[:, 2], dst_valid)
+    s = jnp.clip((hi_d - lo_d) / jnp.maximum(hi_s - lo_s, 1e-12), scale_range[0], scale_range[1])
+    tz = 0.5 * (lo_d + hi_d) - s * 0.5 * (lo_s + hi_s)
+    wall_d = (dst_valid & (jnp.abs(jnp.asarray(dst_normals) @ up_d) < 0.5)).astype(jnp.float32)
+    od = jnp.sum(wall_d[:, None] * ud[:, :2], 0) / jnp.maximum(jnp.sum(wall_d), 1.0) - 0.5 * grid * cell
+    fd = jnp.fft.rfft2(_raster(ud[:, :2], wall_d, od, cell, grid))
+    wall_s = src_valid & (jnp.abs(jnp.asarray(src_normals) @ up_s) < 0.5)
+    xy, wv, _ = _even_subsample(us[:, :2], wall_s, num_points)
+    wv = wv.astype(jnp.float32)
+    yaw0 = wall_direction(jnp.asarray(dst_normals) @ frame_dst.T, wall_d) - wall_direction(
+        jnp.asarray(src_normals) @ frame_src.T, wall_s.astype(jnp.float32))
+
+    def one(a):
+        c, si = jnp.cos(a), jnp.sin(a)
+        r = s * (xy @ jnp.array([[c, si], [-si, c]]))  # s Rz(a) xy, row vectors
+        os_ = jnp.sum(wv[:, None] * r, 0) / jnp.maximum(jnp.sum(wv), 1.0) - 0.5 * grid * cell
+        corr = jnp.fft.irfft2(fd * jnp.conj(jnp.fft.rfft2(_raster(r, wv, os_, cell, grid))), s=(grid, grid))
+        k = jnp.argmax(corr)
+        d = (jnp.stack([k // grid, k % grid]) + grid // 2) % grid - grid // 2
+        t = jnp.concatenate([od - os_ + d * cell, tz[None]])
+        A = jnp.array([[c, -si, 0.0], [si, c, 0.0], [0.0, 0.0, 1.0]]) * s
+        T = _similarity(jnp.ones(()), frame_dst.T @ A @ frame_src, frame_dst.T @ t)
+        return T, corr.reshape(-1)[k]
+
+    return jax.vmap(one)(yaw0 + jnp.arange(num_yaws) * (2 * np.pi / num_yaws))
+
+
+def wall_direction(upright_normals, w):
+    """The dominant horizontal wall direction (radians, modulo 90 deg) of normals already in an upright
+    frame (N, 3) weighted by w (N,): the circular mean of 4x their horizontal angles (box rooms: the
+    four walls agree)."""
+    a = 4.0 * jnp.arctan2(upright_normals[:, 1], upright_normals[:, 0])
+    return 0.25 * jnp.arctan2(jnp.sum(w * jnp.sin(a)), jnp.sum(w * jnp.cos(a)))
+
+
+def _colour_icp(src, scol, sv, dst, dcol, dv, T, distance, iterations: int, max_colour, cell=None, per_cell: int = 3):
+    """Point-to-point Sim(3) ICP of ``src`` (n, 3) (colours ``scol`` (n, 3) float) to ``dst`` on pairs
+    within ``distance`` whose colours are within ``max_colour`` RGB (brute force, or :func:`grid_nearest`
+    when ``cell``: ``dst`` sorted by :func:`sort_by_cell` at ``cell``). Returns (T, nearest (n,),
+    squared distance (n,), colour difference (n,)) at the final T."""
+    from cm3d.solvers.align import umeyama
+
+    def nearest(T):
+        q = src @ T[:3, :3].T + T[:3, 3]
+        if cell is None:
+            d2 = jnp.where(dv[None], jnp.sum((q[:, None] - dst[None]) ** 2, -1), jnp.inf)
+            j = jnp.argmin(d2, 1)
+            dmin = jnp.take_along_axis(d2, j[:, None], 1)[:, 0]
+        else:
+            j, dmin = grid_nearest(q, dst, dv, cell, per_cell=per_cell)
+        return j, dmin, jnp.linalg.norm(scol - dcol[j], axis=-1)
+
+    def step(T, _):
+        j, d2, dc = nearest(T)
+        use = sv & (d2 < distance**2) & (dc <= max_colour)
+        s2, R2, t2 = umeyama(src, dst[j], use, with_scale=True)
+        T2 = _similarity(s2, R2, t2)
+        return jnp.where((jnp.sum(use) >= 3) & jnp.all(jnp.isfinite(T2)), T2, T), None
+
+    T, _ = jax.lax.scan(step, T, None, length=iterations)
+    return (T, *nearest(T))
+
+
+def _fallback_stage(bank: MemoryBank, m, entry: MapEntry, frame_q, cfg: MemoryConfig, extra=None) -> Verification:
+    """Keypoint-free verification of map ``m``: :func:`global_hypotheses` (``cfg.fallback_yaws`` yaws)
+    and the poses ``extra`` (G, 4, 4) (e.g. the keypoint path's RANSAC poses); the ``cfg.fallback_refine``
+    with the most colour-consistent overlap (:func:`_screen_poses`; correlation breaks ties) are each
+    refined by :func:`_colour_icp` (coarse: 128 query voxels against 512 map points within 4 map
+    voxels; fine: ``cfg.icp_points`` query voxels, one grid cell); of those with ``cfg.min_inliers``
+    inliers the pose with the largest (inliers within ``cfg.fallback_colour_difference`` RGB) x (their
+    share) is kept, then STRICT acceptance: inliers >= ``cfg.min_inliers``, fitness >=
+    ``cfg.fallback_min_fitness``, inlier RMSE <= ``cfg.fallback_max_rmse`` voxels and a share >=
+    ``cfg.fallback_min_colour`` of inliers within ``cfg.fallback_colour_difference`` RGB. A box room's wrong orientations often fit its geometry
+    *better* than the right one (partial views), and unseen box rooms fit as well as revisits: only a
+    close colour match at the right pose separates them, so the pose is chosen by colour, not fitness.
+    Fixed shapes throughout (jittable, vmappable); cost ~ ``cfg.fallback_refine`` extra ICPs per query."""
+    present = (m >= 0) & bank.map_valid[jnp.maximum(m, 0)]
+    m = jnp.maximum(m, 0)
+    vs = jnp.maximum(bank.voxel_size[m], 1e-12)
+    frame_m = upright_frame(up_axis(bank.normals[m], bank.point_valid[m], cfg.up_prior, cfg.up_max_angle))
+    Ts, peak = global_hypotheses(entry.points, entry.normals, entry.point_valid, bank.points[m], bank.normals[m],
+                                 bank.point_valid[m], frame_q, frame_m, 2.0 * vs, cfg.fallback_yaws,
+                                 cfg.fallback_grid, cfg.fallback_points, cfg.scale_range)
+    if extra is not None:  # e.g. the keypoint path's poses, rejected by its own thresholds
+        Ts = jnp.concatenate([Ts, extra.astype(Ts.dtype)])
+        peak = jnp.concatenate([peak, jnp.full(extra.shape[:1], jnp.max(peak), peak.dtype)])
+    screen = _screen_poses(bank, m, entry, Ts, cfg).astype(jnp.float32)
+    rank = screen + 0.5 * peak / jnp.maximum(jnp.max(peak), 1e-12)  # overlap first, correlation breaks ties
+    _, top = jax.lax.top_k(rank, min(cfg.fallback_refine, Ts.shape[0]))
+    mpts, mv, mcol = bank.points[m], bank.point_valid[m], bank.colors[m].astype(jnp.float32)
+    csrc, csv, cidx = _even_subsample(entry.points, entry.point_valid, 128)
+    _, _, didx = _even_subsample(mpts, mv, 512)
+    src, sv, idx = _even_subsample(entry.points, entry.point_valid, cfg.icp_points)
+    cell = GRID_CELL * vs
+
+    def refine(T):
+        T = _colour_icp(csrc, entry.colors[cidx].astype(jnp.float32), csv, mpts[didx], mcol[didx], mv[didx], T,
+                        4.0 * vs, 4, cfg.max_colour_difference)[0]
+        T, _, d2, dc = _colour_icp(src, entry.colors[idx].astype(jnp.float32), sv, mpts, mcol, mv, T, cell,
+                                   cfg.icp_iterations, cfg.max_colour_difference, cell=cell, per_cell=cfg.grid_per_cell)
+        inl = sv & (d2 < cell**2)
+        return T, inl, d2, jnp.sum(inl & (dc <= cfg.fallback_colour_difference))
+
+    Tr, inl, d2, good = jax.vmap(refine)(Ts[top])
+    n_inl = jnp.sum(inl, 1)
+    b = jnp.argmax(jnp.where(n_inl >= cfg.min_inliers, good * good / jnp.maximum(n_inl, 1), -1.0))
+    T, inl, d2 = Tr[b], inl[b], d2[b]
+    count = jnp.sum(inl)
+    fitness = count / jnp.maximum(jnp.sum(sv), 1)
+    rmse = jnp.sqrt(jnp.sum(jnp.where(inl, d2, 0.0)) / jnp.maximum(count, 1))
+    agree = good[b] / jnp.maximum(count, 1)
+    scale = jnp.cbrt(jnp.linalg.det(T[:3, :3]))
+    ok = (present & (count >= cfg.min_inliers) & (fitness >= cfg.fallback_min_fitness)
+          & (rmse <= cfg.fallback_max_rmse * vs) & (agree >= cfg.fallback_min_colour)
+          & (scale >= cfg.scale_range[0]) & (scale <= cfg.scale_range[1]) & jnp.all(jnp.isfinite(T)))
+    z = jnp.zeros((), jnp.int32)
+    return Verification(accepted=ok, transform=T, scale=scale, matches=z, keypoint_inliers=z, fitness=fitness,
+                        inlier_count=count.astype(jnp.int32), inlier_rmse=rmse, colour_agreement=agree)
+
+
 def _query_keypoints(entry: MapEntry, cfg: MemoryConfig):
     """The query's keypoints (none: three invalid ones), their :func:`keypoint_clusters`, its upright
     frame (:func:`upright_frame` of :func:`up_axis`) and the cluster separation (query units)."""
@@ -904,13 +1076,16 @@ def verify(bank: MemoryBank, map_id, entry: MapEntry, cfg: MemoryConfig, key) ->
 @struct.dataclass
 class Identification:
     """Recall + verification of one query: the recall, keypoint checks of each candidate
-    (``candidate_inliers`` (top_k,)), the final verification of the best candidate, and
-    ``map_id`` (the accepted map, -1 if none)."""
+    (``candidate_inliers`` (top_k,)), the final verification (of the keypoint path's candidate, or of
+    the fallback's when only the fallback accepted), ``map_id`` (the accepted map, -1 if none) and
+    ``fallback``: the keypoint-free check of that candidate (:func:`_fallback_stage`; None when
+    ``cfg.fallback_yaws`` is 0)."""
 
     recall: Recall
     candidate_inliers: jax.Array
     verification: Verification
     map_id: jax.Array
+    fallback: Verification | None = None
 
 
 def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Identification:
@@ -919,7 +1094,10 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
     2D recall (:func:`recall`) proposes ``cfg.top_k`` candidates; each is checked by keypoint
     matching + Sim(3) RANSAC (triangle and upright-pair hypotheses); the candidate with most RANSAC
     inliers (ties: recall order) is refined from its pose with the most colour-consistent overlap
-    and verified by ICP (:func:`verify`, per ``cfg.verification``).
+    and verified by ICP (:func:`verify`, per ``cfg.verification``). With ``cfg.fallback_yaws`` (and
+    ``"full"`` verification) a query the keypoint path rejects gets a second, keypoint-free chance
+    against the same candidate (:func:`_fallback_stage`, stricter thresholds); under ``vmap`` both
+    paths run for every query (fixed cost: the yaw search and ``cfg.fallback_refine`` ICPs per query).
     """
     r = recall(bank, entry.kf_desc, entry.kf_valid, entry.cloud_desc, cfg)
     cand = r.candidates
@@ -935,7 +1113,14 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
     b = jnp.argmax(best)
     m = cand[b]
     v = _refine_and_decide(bank, m, entry, Ts[b], scales[b], matches[b], inliers[b], cfg)
-    return Identification(recall=r, candidate_inliers=best, verification=v, map_id=jnp.where(v.accepted, m, -1))
+    map_id = jnp.where(v.accepted, m, -1)
+    if not cfg.fallback_yaws or cfg.verification != "full":
+        return Identification(recall=r, candidate_inliers=best, verification=v, map_id=map_id)
+    fb = _fallback_stage(bank, m, entry, frame, cfg, Ts[b])
+    use = ~v.accepted & fb.accepted
+    v = jax.tree.map(lambda a, c: jnp.where(use, a, c), fb, v)
+    return Identification(recall=r, candidate_inliers=best, verification=v, map_id=jnp.where(use, m, map_id),
+                          fallback=fb)
 
 
 def relocalize(transform, cam_to_world):

@@ -165,15 +165,16 @@ def test_select_keyframes_spacing_and_capacity():
     desc = np.zeros((S, D), np.float32)
     desc[:, 0] = 0.1 * np.arange(S) + 1.0
     valid = np.ones(S, bool)
-    idx, ok = memory.select_keyframes(desc, valid, threshold=0.35, max_keyframes=16)
+    select = jax.jit(memory.select_keyframes, static_argnums=(2, 3))
+    idx, ok = select(desc, valid, 0.35, 16)
     idx = np.asarray(idx)[np.asarray(ok)]
     assert list(idx) == [0, 4, 8, 12, 16, 20, 24, 28]  # a new keyframe every 0.4 > 0.35
-    idx, ok = jax.jit(memory.select_keyframes, static_argnums=(2, 3))(desc, valid, 0.05, 5)
+    idx, ok = select(desc, valid, 0.05, 5)
     assert bool(np.all(ok)) and list(np.asarray(idx)) == [0, 7, 14, 22, 29]  # over capacity: spread
     valid[:3] = False
-    idx, ok = memory.select_keyframes(desc, valid, 0.35, 16)
+    idx, ok = select(desc, valid, 0.35, 16)
     assert int(np.asarray(idx)[0]) == 3  # the first valid frame starts
-    idx, ok = memory.select_keyframes(desc, np.zeros(S, bool), 0.35, 4)
+    idx, ok = select(desc, np.zeros(S, bool), 0.35, 16)
     assert not bool(np.any(ok))
 
 
@@ -229,24 +230,30 @@ def test_sequence_cloud_and_entry_from_a_render():
 
 
 def test_capacity_grows_the_voxel_instead_of_dropping_points():
-    small = memory.MemoryConfig(max_maps=2, max_points=64, max_keyframes=2, pixel_stride=2, voxel_resolution=200)
-    cloud, entry = _entry_of(small)
-    assert 0 < int(entry.point_valid.sum()) <= 64
+    """The capacity policy of build_entry / update_map (_downsample_to_capacity), on the render's cloud."""
+    from cm3d.ops.voxel import adaptive_voxel_size
+
+    cloud, _ = _entry_of()
+    feats = jnp.concatenate([cloud.colors.astype(jnp.float32), cloud.conf[:, None]], axis=1)
+    vs0 = adaptive_voxel_size(cloud.points, cloud.valid, 60.0)
+    vox, vs = jax.jit(memory._downsample_to_capacity, static_argnums=4)(cloud.points, cloud.valid, feats, vs0, 64)
+    assert 0 < int(vox.count) <= 64 and float(vs) > float(vs0)
     # the mean of all voxel points still covers the whole cloud (nothing was cut away)
     pts = np.asarray(cloud.points)[np.asarray(cloud.valid)]
     lo, hi = pts.min(0), pts.max(0)
-    vox = np.asarray(entry.points)[np.asarray(entry.point_valid)]
+    vox = np.asarray(vox.points)[np.asarray(vox.valid)]
     assert np.all(vox.min(0) < lo + 0.35 * (hi - lo)) and np.all(vox.max(0) > hi - 0.35 * (hi - lo))
 
 
 def test_relocalize_applies_a_similarity_to_poses():
     from cm3d.ops import se3
 
-    T = np.asarray(se3.exp(jnp.array([0.3, -0.2, 0.5, 0.1, 0.4, -0.2])))
+    xi = np.concatenate([[[0.3, -0.2, 0.5, 0.1, 0.4, -0.2]], np.random.default_rng(0).normal(size=(4, 6)) * 0.3])
+    poses = np.asarray(jax.jit(se3.exp)(jnp.asarray(xi, jnp.float32)))  # one compiled call, not eager ops
+    T, cams = poses[0], poses[1:]
     S = T.copy()
     S[:3, :3] *= 2.0  # scale 2
-    cams = np.asarray(se3.exp(jnp.asarray(np.random.default_rng(0).normal(size=(4, 6)) * 0.3, jnp.float32)))
-    out = np.asarray(memory.relocalize(jnp.asarray(S), jnp.asarray(cams)))
+    out = np.asarray(jax.jit(memory.relocalize)(jnp.asarray(S), jnp.asarray(cams)))
     np.testing.assert_allclose(out[:, :3, :3], T[:3, :3] @ cams[:, :3, :3], atol=1e-5)
     np.testing.assert_allclose(out[:, :3, 3], cams[:, :3, 3] @ S[:3, :3].T + S[:3, 3], atol=1e-5)
 
@@ -283,14 +290,14 @@ def test_lift_keypoints_agrees_with_unprojection_and_round_robin():
     depth = rng.uniform(1, 3, (S, H, W)).astype(np.float32)
     depth[1, 5, 7] = 0.0  # no depth: dropped
     K = np.tile(np.array([[20.0, 0, 14.5], [0, 20.0, 9.5], [0, 0, 1]], np.float32), (S, 1, 1))
-    c2w = np.asarray(se3.exp(jnp.asarray(rng.normal(size=(S, 6)) * 0.3, jnp.float32)))
+    c2w = np.asarray(jax.jit(se3.exp)(jnp.asarray(rng.normal(size=(S, 6)) * 0.3, jnp.float32)))
     uv = rng.integers(0, [W, H], (S, N, 2)).astype(np.float32)
     uv[1, 0] = [7, 5]
     desc = rng.normal(size=(S, N, 8)).astype(np.float32)
     valid = np.ones((S, N), bool)
     valid[2, 3] = False
     kp = jax.jit(memory.lift_keypoints, static_argnums=6)(uv, desc, valid, depth, K, c2w, 16)
-    full = np.asarray(camera.unproject(depth, K, c2w))
+    full = np.asarray(jax.jit(camera.unproject)(depth, K, c2w))
     ok = valid & (depth[np.arange(S)[:, None], uv[..., 1].astype(int), uv[..., 0].astype(int)] > 0)
     assert int(kp.valid.sum()) == ok.sum() == 10
     # round robin: the first keypoints come one per frame, each frame's strongest first
@@ -442,10 +449,10 @@ def test_entry_keypoints_are_padded_and_never_nan():
 
 
 VISIT_CFG = memory.MemoryConfig(max_maps=4, max_points=1024, max_keyframes=8, max_keypoints=256,
-                                voxel_resolution=40.0, top_k=2)
+                                voxel_resolution=40.0, top_k=2, fallback_yaws=4)
 
 
-VISIT_FRAMES = 20  # every visit is padded to this many frames (extra frames invalid): one compilation
+VISIT_FRAMES = 16  # every visit is padded to this many frames (extra frames invalid): one compilation
 
 
 @jax.jit
@@ -491,7 +498,9 @@ def visits():
 
 def test_revisit_is_recalled_verified_and_relocalised_and_new_room_rejected(visits):
     """remember (recall, verification, update or insert), jitted and vmapped over a batch of two
-    queries: the revisit updates map 1 with a correct Sim(3), the new room becomes map 2."""
+    queries: the revisit updates map 1 with a correct Sim(3), the new room becomes map 2. The
+    keypoint-free fallback runs too: from the clouds alone it finds the revisit's Sim(3) (reference:
+    the ground truth) and its strict thresholds refuse the new room."""
     bank, maps, (rev, rev_pfw), (new, _) = visits
     queries = jax.tree.map(lambda a, b: jnp.stack([a, b]), rev, new)
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
@@ -507,6 +516,14 @@ def test_revisit_is_recalled_verified_and_relocalised_and_new_room_rejected(visi
     np.testing.assert_allclose(s, s_gt, rtol=0.05)
     dR = (T[:3, :3] / s) @ (gt[:3, :3] / s_gt).T
     assert np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))) < 3.0
+    fb = jax.tree.map(lambda a: np.asarray(a), out.fallback)
+    Tf = fb.transform[0]
+    sf = np.cbrt(np.linalg.det(Tf[:3, :3]))
+    np.testing.assert_allclose(sf, s_gt, rtol=0.05)
+    dR = (Tf[:3, :3] / sf) @ (gt[:3, :3] / s_gt).T
+    assert np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))) < 6.0
+    assert fb.fitness[0] >= 0.8 and fb.colour_agreement[0] > fb.colour_agreement[1] + 0.4
+    assert not fb.accepted[1]  # the new room fails the fallback's strict thresholds
     # the revisit updated map 1 in place (moved by the verified transform) ...
     b0 = jax.tree.map(lambda a: a[0], banks)
     assert list(np.asarray(rep.map_id)) == [1, 2] and list(np.asarray(rep.created)) == [False, True]
