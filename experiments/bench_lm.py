@@ -4,7 +4,9 @@
 
 All in one run, on the same seeded problems (:func:`cm3d.solvers.factors.random_problem`: a
 video-like camera path, landmarks tracked over 12 consecutive frames, 1 px noise, 2 % gross
-outliers, Huber projection factors, a gauge prior on the first pose and motion factors):
+outliers, Huber projection factors, a gauge prior on the first pose and motion factors between the
+pose pairs of ``GraphConfig.motion_pairs``, consecutive by default; GTSAM gets BetweenFactors between
+the same pairs, :func:`cm3d.baselines.gtsam_graph`):
 
 1. small (60 poses, 1500 landmarks, 18k projections) and large (200 poses, 5000 landmarks, 60k):
    cm3d (dense Schur; the large one also with the matrix-free PCG Schur solver) and GTSAM's

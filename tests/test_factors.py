@@ -132,9 +132,41 @@ def test_build_graph_memory_scaling_and_padding():
         np.testing.assert_allclose(g.projection.weight, [1, 1, 1, 0])
         np.testing.assert_allclose(g.motion.weight, [1, 1, 0])  # no factor into the padded pose
         np.testing.assert_allclose(g.prior.target[0], poses[0])
+        # default: the paper's chain of consecutive poses
+        np.testing.assert_array_equal(g.motion.idx_a, [0, 1, 2])
         np.testing.assert_allclose(g.motion.measured[1], se3.inverse(poses[1]) @ poses[2], atol=1e-15)
+        anchor = factors.build_graph(poses, K, pose_idx, point_idx, uv, valid, memory,
+                                     pose_valid=jnp.array([True, False, True, True]),
+                                     cfg=GraphConfig(motion_pairs="anchor"))
+        np.testing.assert_array_equal(anchor.motion.idx_a, [0, 0, 0])
+        np.testing.assert_array_equal(anchor.motion.idx_b, [1, 2, 3])
+        np.testing.assert_allclose(anchor.motion.weight, [0, 1, 1])
+        np.testing.assert_allclose(anchor.motion.measured[1], se3.inverse(poses[0]) @ poses[2], atol=1e-15)
+        ia, ib = factors.motion_pairs(N, "both")
+        np.testing.assert_array_equal(ia, [0, 0, 0, 0, 1, 2])
+        np.testing.assert_array_equal(ib, [1, 2, 3, 1, 2, 3])
         with pytest.raises(ValueError, match="memory_alpha"):
             GraphConfig(memory_alpha=0.0)
+        with pytest.raises(ValueError, match="motion_pairs"):
+            GraphConfig(motion_pairs="chain")
+
+
+def test_anchor_motion_pairs_equal_gtsam_between_factors(problem):
+    """Motion factors from the anchor to every pose (the default chain:
+    test_total_cost_equals_gtsam_graph_error) are the same objective as GTSAM's BetweenFactors on
+    those pairs, at poses off the prior."""
+    import gtsam  # noqa: F401
+    from cm3d import baselines
+
+    _, x, _ = problem
+    with jax.enable_x64(True):
+        graph, _, _ = factors.random_problem(3, 6, 40, obs_per_point=4, pose_noise=0.05, outlier_frac=0.1,
+                                             cfg=GraphConfig(motion_pairs="anchor"))
+        np.testing.assert_array_equal(graph.motion.idx_a, 0)
+        g, values, _, point_ok = baselines.gtsam_graph(graph, x)
+        f = graph.projection
+        mask = jnp.asarray(point_ok[np.asarray(f.point_idx)])
+        assert float(factors.total_cost(graph, x, mask)) == pytest.approx(g.error(values), rel=1e-10)
 
 
 def test_adaptive_threshold_and_rejection(problem):
