@@ -120,8 +120,9 @@ def _load_inputs(paths):
 
 def _run_chunks(chunks, cfg, bank, args):
     """The chunks of one long video: the pipeline over every chunk threading one memory bank, Sim(3)
-    overlap alignment, loop closures from recalls across chunks, the Sim(3) pose graph
-    (:func:`cm3d.stitch.stitch_with_memory`). Returns (bank, whole-video result, stitch facts)."""
+    overlap alignment, loop closures from recalls across chunks (measured frame to frame), the
+    Sim(3) pose graph, then the whole-trajectory refinement (:func:`cm3d.stitch.stitch_with_memory`).
+    Returns (bank, whole-video result: refined trajectory, the stitched priors as its prior; facts)."""
     from cm3d import stitch
 
     bars = _Progress(not args.quiet)
@@ -132,11 +133,14 @@ def _run_chunks(chunks, cfg, bank, args):
     facts = {"ranges": st.ranges, "chunk_transforms": st.chunk_transforms, "refined": st.refined,
              "boundaries": [dataclasses.asdict(b) for b in st.boundaries],
              "pose_graph": {k: v for k, v in f.items()
-                            if k not in ("loop_discrepancy", "loop_kept", "chained_transforms")},
+                            if k not in ("loop_discrepancy", "loop_kept", "chained_transforms", "poses_stitched",
+                                         "frames")},
+             "frame_refinement": f["frames"],
              "loops": [{"chunk": lc.chunk, "other": lc.other, "frames": list(lc.frames),
                         "other_frames": list(lc.other_frames or ()), "transform": lc.transform,
                         "inliers": lc.inliers, "rmse": lc.rmse, "discrepancy": f["loop_discrepancy"][i],
-                        "kept": bool(f["loop_kept"][i])} for i, lc in enumerate(st.loops)]}
+                        "kept": bool(f["loop_kept"][i]), "frame_pairs": lc.pairs,
+                        "sigma": None if lc.sigma is None else lc.sigma} for i, lc in enumerate(st.loops)]}
     return st.bank, res, facts
 
 
@@ -175,8 +179,11 @@ def _run(args) -> int:
     m = outputs.write_results(out, res, bank if cfg.use_memory else None, pictures=not args.no_pictures)
     if chunks is not None:
         outputs.write_json(out / "stitch.json", facts)
+        fr = facts["frame_refinement"]
         print(f"stitched {res.sequence.num_frames} frames: {len(facts['loops'])} loop closures recalled across "
-              f"chunks, {sum(lc['kept'] for lc in facts['loops'])} kept by the pose graph's consistency check")
+              f"chunks, {sum(lc['kept'] for lc in facts['loops'])} kept by the pose graph's consistency check; "
+              f"whole-trajectory refinement {'kept' if fr['kept'] else 'refused: ' + fr.get('reason', 'self-check')}"
+              + (f" ({fr['pairs_used']} of {fr['pairs']} frame pairs)" if "pairs" in fr else ""))
     if bank_path is not None and cfg.use_memory:
         memory.save(bank, bank_path, cfg.memory)
     for w in res.windows:
@@ -283,8 +290,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a .npz sequence, an image folder (images/ + priors.npz) or a TUM RGB-D folder; "
                    "several .npz files (or one holding a 'chunk' key): overlapping chunks of one long video: "
                    "the pipeline runs on every chunk threading the memory (recall across chunks), the chunks "
-                   "are aligned by Sim(3) on their shared frames and a Sim(3) pose graph closes loops "
-                   "recalled from memory; stitch.json holds the chunk transforms and loop closures")
+                   "are aligned by Sim(3) on their shared frames, a Sim(3) pose graph closes loops "
+                   "recalled from memory (measured frame to frame), and one pose graph over every frame "
+                   "refines the whole trajectory (trajectory.txt; trajectory_prior.txt: the stitched priors); "
+                   "stitch.json holds the chunk transforms, loop closures and the refinement's facts")
     r.add_argument("--out", required=True, metavar="DIR", help="output folder")
     r.add_argument("--memory", metavar="BANK", help="memory bank file: loaded if present, updated, saved atomically")
     r.add_argument("--no-memory", action="store_true", help="no recall / verify / update")

@@ -290,3 +290,64 @@ def test_memory_sequence_result_for_the_writers(video):
     np.testing.assert_allclose(out.prior, base.sequence.cam_to_world)
     with pytest.raises(stitch.StitchError, match="stitch_with_memory"):
         stitch.memory_sequence_result(base, chunks)
+
+
+def test_whole_trajectory_refinement_lowers_error_and_survives_a_bad_chunk(video):
+    """The frame-level pose graph (image-measured relative motions across chunk boundaries) lowers
+    the stitched priors' ATE; a chunk whose images are shifted (its flow says wrong motions) has
+    those frame pairs dropped instead of corrupting the trajectory; leverages sum to 6N."""
+    chunks = chunks_at(video, "moderate")
+    gt = video[1].cam_to_world
+    res = stitch.stitch_chunks(chunks, refine=True)
+    e_prior, e_ref = (float(metrics.ate(P, gt)) for P in (res.poses_aligned, res.sequence.cam_to_world))
+    f = res.refinement
+    assert res.refined and f["kept"] and f["pairs_used"] == FRAMES - 1
+    assert e_ref < 0.85 * e_prior, (e_prior, e_ref)
+    assert f["sigma_motion_rot_deg"] < f["sigma_prior_rot_deg"]  # estimated, no ground truth
+    # chunk 1's images rolled by +-8 px, alternating: wrong motions of ~15°, dropped
+    bad = chunks[1].replace(images=np.stack([np.roll(im, 8 * (-1) ** i, axis=1)
+                                             for i, im in enumerate(chunks[1].images)]))
+    res_bad = stitch.stitch_chunks([chunks[0], bad, *chunks[2:]], refine=True)
+    assert res_bad.refinement["pairs_used"] < FRAMES - 1 - 3
+    e_bad = float(metrics.ate(res_bad.sequence.cam_to_world, gt))
+    assert e_bad < float(metrics.ate(res_bad.poses_aligned, gt)), (e_bad, e_prior)
+    # the O(N) block-tridiagonal solve and inverse blocks against dense NumPy; hat matrix trace = 6N
+    rng = np.random.default_rng(2)
+    n = 5
+    L = rng.normal(size=(6 * n, 6 * n)) * (np.abs(np.subtract.outer(np.arange(6 * n) // 6, np.arange(6 * n) // 6)) <= 1)
+    H = L @ L.T + 6 * n * np.eye(6 * n)
+    H *= np.abs(np.subtract.outer(np.arange(6 * n) // 6, np.arange(6 * n) // 6)) <= 1
+    b = rng.normal(size=6 * n)
+    blk = lambda i, j: H[6 * i:6 * i + 6, 6 * j:6 * j + 6]  # noqa: E731
+    with jax.enable_x64(True):
+        D = stitch._f(np.stack([blk(i, i) for i in range(n)]))
+        U = stitch._f(np.stack([blk(i, i + 1) for i in range(n - 1)]))
+        x, Pd, C = (np.asarray(v) for v in stitch._block_tridiagonal(D, U, stitch._f(b.reshape(n, 6))))
+        Hi = np.linalg.inv(H)
+        np.testing.assert_allclose(x.ravel(), np.linalg.solve(H, b), rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(Pd, np.stack([Hi[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(n)]), atol=1e-12)
+        np.testing.assert_allclose(C, np.stack([Hi[6 * i:6 * i + 6, 6 * i + 6:6 * i + 12] for i in range(n - 1)]),
+                                   atol=1e-12)
+        P = res.poses_aligned
+        ia = np.arange(FRAMES - 1)
+        g = stitch.frame_graph(P, ia, ia + 1, np.linalg.inv(P[ia]) @ P[ia + 1], np.full(6, 0.01), np.full(6, 0.1))
+        out = stitch.solve_frame_graph(g, stitch._f(P))
+    np.testing.assert_allclose(float(np.sum(out[2]) + np.sum(out[4])), 6 * FRAMES, rtol=1e-6)
+
+
+def test_measure_loop_recovers_a_known_similarity(noise_free):
+    """A loop between a chunk and a copy of it moved by a known Sim(3): every frame pairs with
+    itself, the flow is zero and the measured loop is that Sim(3), with a tiny sigma."""
+    chunks, res = noise_free
+    c = chunks[0]
+    Q, s = random_similarity(np.random.default_rng(5))
+    with jax.enable_x64(True):
+        moved = c.replace(cam_to_world=np.asarray(stitch.place_poses(stitch._f(Q), stitch._f(c.cam_to_world))),
+                          depth=(c.depth * s).astype(np.float32))
+    G = np.stack([np.eye(4), np.eye(4), np.linalg.inv(Q)])  # the copy placed back where it belongs
+    lc = stitch.LoopClosure(chunk=2, other=0, frames=(0, 6), transform=np.eye(4), inliers=10, rmse=1.0,
+                            other_frames=(0, 6))
+    out = stitch.measure_loop(lc, [c, chunks[1], moved], G, max_pairs=4)
+    assert out.pairs == 4 and np.all(out.sigma < 1e-4)
+    np.testing.assert_allclose(out.transform, np.linalg.inv(Q), atol=1e-4)
+    np.testing.assert_array_equal(out.measured, np.eye(4))

@@ -405,14 +405,15 @@ def render_ground_truth(scene: Scene, visit: int, num_frames: int, cfg: WorldCon
 # Prior model
 
 
-def _perturb(rng, num, rot_deg, trans_m):
-    """Pose errors (num, 4, 4): i.i.d. jitter plus a random-walk drift, each of RMS half the level."""
+def _perturb(rng, num, rot_deg, trans_m, drift_factor: float = 1.0):
+    """Pose errors (num, 4, 4): i.i.d. jitter plus a random-walk drift, each of RMS half the level
+    (the drift times ``drift_factor``)."""
     from scipy.spatial.transform import Rotation
 
     sig = np.array([trans_m] * 3 + [np.deg2rad(rot_deg)] * 3) / np.sqrt(3.0) / np.sqrt(2.0)
     jitter = rng.normal(size=(num, 6)) * sig
     drift = np.cumsum(rng.normal(size=(num, 6)) * sig / np.sqrt(max(num - 1, 1)), axis=0)
-    xi = jitter + drift
+    xi = jitter + drift * drift_factor
     xi[0] = 0.0  # the first camera defines the prior frame, as in VGGT
     out = np.tile(np.eye(4), (num, 1, 1))
     out[:, :3, :3] = Rotation.from_rotvec(xi[:, 3:]).as_matrix()
@@ -431,7 +432,7 @@ def _smooth_field(rng, h, w, n=4):
 
 
 def make_priors(images, gt: GroundTruth, level: str = "moderate", seed: int = 0,
-                timestamps=None, meta=None) -> Sequence:
+                timestamps=None, meta=None, drift: float = 1.0) -> Sequence:
     """VGGT-like priors from ground truth.
 
     The priors live in the first camera's frame, scaled so that the mean distance of the
@@ -440,10 +441,14 @@ def make_priors(images, gt: GroundTruth, level: str = "moderate", seed: int = 0,
     similarity transform. Depth: ``d' = s d (1 + j_t)(1 + b(u, v)) (1 + n)`` with per-frame
     jitter ``j``, a smooth bias ``b`` and pixel noise ``n`` (all of std :data:`DEPTH_NOISE`).
     Confidence (>= 1, like VGGT): high on smooth, near surfaces, low on depth edges and far away.
-    Poses: ground-truth relative poses times errors of the level's size (:data:`NOISE_LEVELS`).
+    Poses: ground-truth relative poses times errors of the level's size (:data:`NOISE_LEVELS`);
+    ``drift`` multiplies their random-walk part (1: the level's; larger: a prior whose trajectory
+    drifts, e.g. for long videos whose chain of chunks should need a loop closure).
     """
     if level not in NOISE_LEVELS:
         raise ValueError(f"level: unknown noise level {level!r}; choose from {list(NOISE_LEVELS)}")
+    if not (np.isfinite(drift) and drift >= 0):
+        raise ValueError(f"drift: must be a finite number >= 0, got {drift}")
     rng = np.random.default_rng([seed, 3])
     S, H, W = gt.depth.shape
     first_inv = np.linalg.inv(gt.cam_to_world[0])
@@ -454,7 +459,7 @@ def make_priors(images, gt: GroundTruth, level: str = "moderate", seed: int = 0,
     scale = 1.0 / np.linalg.norm(pts_first[valid], axis=-1).mean() * np.exp(rng.normal(0, 0.1))
 
     rot_deg, trans_m = NOISE_LEVELS[level]
-    noisy = rel @ _perturb(rng, S, rot_deg, trans_m)
+    noisy = rel @ _perturb(rng, S, rot_deg, trans_m, drift)
     noisy[:, :3, 3] *= scale
 
     sd = DEPTH_NOISE[level]
@@ -512,11 +517,12 @@ def chunk_ranges(num_frames: int, chunk_size: int, overlap: int) -> list[tuple[i
 
 
 def make_chunk_priors(images, gt: GroundTruth, chunk_size: int = 40, overlap: int = 10,
-                      level: str = "moderate", seed: int = 0, timestamps=None, meta=None) -> list[Sequence]:
+                      level: str = "moderate", seed: int = 0, timestamps=None, meta=None,
+                      drift: float = 1.0) -> list[Sequence]:
     """Split one long rendered video into overlapping chunks, each with its own VGGT-like prior
     (:func:`make_priors`: its own unknown scale, its first camera as the frame, its own depth and
     pose noise), as VGGT gives when run chunk by chunk. Ground truth stays in the common metric
-    world frame; timestamps are global (default: frame index)."""
+    world frame; timestamps are global (default: frame index); ``drift``: see :func:`make_priors`."""
     S = len(images)
     ts = np.arange(S, dtype=np.float64) if timestamps is None else np.asarray(timestamps, np.float64)
     chunks = []
@@ -525,24 +531,27 @@ def make_chunk_priors(images, gt: GroundTruth, chunk_size: int = 40, overlap: in
                         dynamic_mask=None if gt.dynamic_mask is None else gt.dynamic_mask[a:b],
                         flow=None if gt.flow is None else gt.flow[a:b - 1])
         m = {**(meta or {}), "chunk": k, "chunk_start": a, "chunk_stop": b}
-        chunks.append(make_priors(images[a:b], g, level, seed=seed * 7919 + k, timestamps=ts[a:b], meta=m))
+        chunks.append(make_priors(images[a:b], g, level, seed=seed * 7919 + k, timestamps=ts[a:b], meta=m,
+                                  drift=drift))
     return chunks
 
 
 def generate_long_video(scene_seed: int = 0, visit: int = 0, num_frames: int = 200, chunk_size: int = 40,
                         overlap: int = 10, level: str = "moderate",
-                        cfg: WorldConfig = WorldConfig(height=96, width=128), loop: bool = False):
+                        cfg: WorldConfig = WorldConfig(height=96, width=128), loop: bool = False,
+                        drift: float = 1.0):
     """One long visit rendered once and split into overlapping VGGT-like chunks.
 
     loop: the camera comes back to its start (:func:`camera_trajectory`), so the last chunk revisits
-    the first chunk's place. Returns (chunks: list of :class:`Sequence`, images (S, H, W, 3) uint8,
-    ground truth of the whole video). 200 frames at 96x128 render in ~12 s on 2 CPU cores (192x256: ~90 s).
+    the first chunk's place; drift: the priors' drift factor (:func:`make_priors`). Returns (chunks:
+    list of :class:`Sequence`, images (S, H, W, 3) uint8, ground truth of the whole video). 200
+    frames at 96x128 render in ~12 s on 2 CPU cores (192x256: ~90 s).
     """
     scene = make_scene(scene_seed, cfg)
     images, gt = render_ground_truth(scene, visit, num_frames, cfg, loop=loop)
     meta = {"source": "synthetic", "scene": scene_seed, "visit": visit}
     chunks = make_chunk_priors(images, gt, chunk_size, overlap, level, seed=scene_seed * 1009 + visit,
-                               timestamps=np.arange(num_frames) / cfg.fps, meta=meta)
+                               timestamps=np.arange(num_frames) / cfg.fps, meta=meta, drift=drift)
     return chunks, images, gt
 
 
