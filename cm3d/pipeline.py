@@ -10,12 +10,17 @@ arrays) -> ``step`` (jit, ``lax.scan`` over frames) -> :func:`collect` (host: pe
    pixel of each cell is seeded and lifted with the prior depth; live landmarks are followed by
    the flow into the current frame (:mod:`cm3d.trajectory`'s landmark rules, one frame at a time);
 3. every ``keyframe_interval`` frames (and at the sequence end), inside one ``lax.cond``
-   (:func:`window_end`): **recall / verify** the window's static cloud, keyframe descriptors and 3D
-   keypoints (prior-posed) against the bank (:func:`cm3d.memory.identify`); the **factor graph** over
-   the window (:func:`cm3d.trajectory.refine_trajectory`) with the recalled map's memory landmarks
-   (after the first solve, landmarks within ``τ = max(τ_min, d_scene · α)`` of the map's surface get
-   a point-to-plane prior and projection covariance scaled by ``α_mem``); **update** the bank with the
-   refined window (merge into the recalled map or store a new one).
+   (:func:`window_end`): the **factor graph** over the window without memory
+   (:func:`cm3d.trajectory.refine_trajectory`, gated); **recall / verify** the window's static cloud,
+   keyframe descriptors and 3D keypoints, posed by those refined poses and merged with what the
+   sequence stored so far, against the bank's *other* maps (:func:`cm3d.memory.identify`); the
+   **factor graph with memory** from the memory-free optimum (landmarks within
+   ``τ = max(τ_min, d_scene · α)`` of the recalled map's surface, or of the sequence's own stored map,
+   get a point-to-plane prior whose std is the larger of the configured one and the landmarks'
+   measured spread about the surface; projection covariance scaled by ``α_mem``), kept only when it
+   agrees with the window's own observations (a χ² test: memory never makes a window worse than
+   the window alone can tell); **update** the bank with the final window (merge into the recalled
+   map or the sequence's own, or store a new one).
 
 Windows: window ``k`` holds ``keyframe_interval + 1`` pose slots; slot 0 is the *anchor*, the last
 frame of the previous window with its refined pose (held by the graph's tight prior on pose 0),
@@ -90,6 +95,10 @@ class PipelineConfig:
     capacities and recall thresholds (used for a new bank; a loaded bank brings its own);
     use_memory: recall / verify / update at all; own_map_landmarks: until a stored map is recalled, a
     window's memory landmarks come from the map its own sequence stored (:func:`window_end`);
+    min_memory_landmarks: fewest landmarks on the remembered surface for the memory solution to be
+    used (a handful hardly constrains six degrees of freedom per frame, and their spread is no
+    measurement); memory_sigma_voxels: the point-to-plane priors' std is at least this many map
+    voxels (:func:`memory_refinement`);
     keyframe_threshold: descriptor distance between
     memory keyframes; feature_capacity: 3D keypoints per frame offered to the memory;
     flow / keypoints: host-side OpenCV front end; seed: the RANSAC key.
@@ -113,6 +122,8 @@ class PipelineConfig:
     track_check: TrackCheckConfig = TrackCheckConfig()
     use_memory: bool = True
     own_map_landmarks: bool = True
+    min_memory_landmarks: int = 12
+    memory_sigma_voxels: float = 0.5
     keyframe_threshold: float = 0.25
     feature_capacity: int = 128
     flow: FlowConfig = FlowConfig()
@@ -126,6 +137,10 @@ class PipelineConfig:
             raise ValueError(f"PipelineConfig.stride: must be >= 1, got {self.stride}")
         if self.feature_capacity < 1:
             raise ValueError("PipelineConfig.feature_capacity: must be >= 1")
+        if self.min_memory_landmarks < 1:
+            raise ValueError(f"PipelineConfig.min_memory_landmarks: must be >= 1, got {self.min_memory_landmarks}")
+        if not self.memory_sigma_voxels >= 0:
+            raise ValueError(f"PipelineConfig.memory_sigma_voxels: must be >= 0, got {self.memory_sigma_voxels}")
 
     @property
     def window(self) -> int:
@@ -430,6 +445,9 @@ class WindowResult:
     iterations: Any
     recall: RecallReport
     inconsistent: Any = 0
+    memory_used: Any = False
+    memory_stat: Any = 0.0
+    memory_threshold: Any = 0.0
 
 
 @struct.dataclass
@@ -756,56 +774,144 @@ def restore_depth_scale(poses, init_poses, points, init_points, seed, valid):
     how far the graph moved the scale, and camera centres are rescaled about the anchor (slot 0,
     held by the prior) by ``1 / r``. poses, init_poses (W, 4, 4); points, init_points (L, 3);
     seed (L,) slot; valid (L,)."""
+    return rescale_window(poses, points, init_poses, init_points, seed, valid)[0]
+
+
+def rescale_window(poses, points, init_poses, init_points, seed, valid):
+    """:func:`restore_depth_scale` of the camera centres *and* the landmarks (L, 3) about the anchor:
+    (poses, points), the graph's solution with the prior depth's scale."""
     d_ref = jnp.linalg.norm(points - poses[seed, :3, 3], axis=-1)
     d_init = jnp.linalg.norm(init_points - init_poses[seed, :3, 3], axis=-1)
     ok = valid & (d_init > 0) & jnp.isfinite(d_ref)
     r = factors.masked_median(d_ref / jnp.where(ok, d_init, 1.0), ok)
     r = jnp.where((jnp.sum(ok) >= 3) & jnp.isfinite(r) & (r > 0), jnp.clip(r, 0.2, 5.0), 1.0)
     c0 = poses[0, :3, 3]
-    return poses.at[:, :3, 3].set(c0 + (poses[:, :3, 3] - c0) / r)
+    return poses.at[:, :3, 3].set(c0 + (poses[:, :3, 3] - c0) / r), c0 + (points - c0) / r
+
+
+def sequence_query(bank: memory.MemoryBank, written, entry: memory.MapEntry, mem_cfg: memory.MemoryConfig):
+    """The query of a window's identification: the window's entry merged with the map its sequence
+    stored so far (``written``, in the sequence's frame: its earlier windows, refined), i.e. the whole
+    sequence up to this window (more keyframes vote, more 3D keypoints can match an earlier visit's
+    map that the window alone overlaps little); the window's entry alone when ``written < 0``."""
+    m = jnp.maximum(written, 0)
+
+    def merged(entry):
+        b = memory.update_map(bank, m, entry, jnp.eye(4, dtype=jnp.float32), mem_cfg)
+        kp = memory.Keypoints(b.kp_points[m], b.kp_desc[m], b.kp_valid[m])
+        return entry.replace(points=b.points[m], normals=b.normals[m], conf=b.conf[m], colors=b.colors[m],
+                             point_valid=b.point_valid[m], kf_desc=b.kf_desc[m], kf_valid=b.kf_valid[m],
+                             cloud_desc=b.cloud_desc[m], voxel_size=b.voxel_size[m],
+                             keypoints=kp)  # both at the bank's keypoint capacity (_bank_config)
+
+    return jax.lax.cond(written >= 0, merged, lambda e: e, entry)
+
+
+def memory_refinement(win: Window, lm_: Landmarks, ref0: trajectory.Refinement, obs: trajectory.Observations,
+                      first, surface: trajectory.MemorySurface, cfg: PipelineConfig, realign=False):
+    """The window's factor graph again, with the remembered surface, from the memory-free optimum
+    ``ref0`` (its graph after outlier rejection, its landmarks and poses).
+
+    The landmarks within ``τ = max(τ_min, d_scene α)`` of the surface's tangent planes get
+    point-to-plane priors and their projection covariance is scaled by ``α_mem``
+    (:func:`cm3d.trajectory.memory_point_prior`; ``realign``: the surface's placement is first
+    re-fitted to the landmarks, :func:`cm3d.trajectory.align_to_surface`), and the LM solves once.
+
+    **Consistency test** (memory never hurts, issue #7): the memory pulls the poses away from the
+    window's own optimum; ``stat = 2 (C_own(poses_mem) − C_own(poses_free))``, with ``C_own`` the
+    window's own objective (no memory terms) after re-estimating the landmarks with the poses held
+    (:func:`structure_only_cost`), is χ²-distributed when the surface agrees with the window's
+    observations and large when it does not (a wrong placement, a map that drifted, biased depth).
+    The memory solution is used only when ``stat <= χ²_q(6 (n − 1))`` (the gate's quantile) and at
+    least ``cfg.min_memory_landmarks`` landmarks are on the surface. The priors' std is the largest of
+    ``plane_sigma_ratio · d_scene``, the landmarks' robust spread about the surface at the memory-free
+    optimum and ``cfg.memory_sigma_voxels`` map voxels.
+    Returns (poses (W, 4, 4) depth-scale restored, accept (the memory solution passes the test and has
+    memory landmarks), alignment (4, 4), memory landmarks (L,) bool, stat, threshold)."""
+    rc = cfg.refine
+    L = lm_.points.shape[0]
+    g0 = ref0.graph
+    # the memory-free optimum at the prior depth's scale (the graph leaves the scale nearly free: a
+    # collapsed window's landmarks would lie far from the remembered surface)
+    x0 = ref0.result.params
+    x0 = factors.Variables(*rescale_window(x0.poses, x0.points, win.poses, lm_.points, lm_.seed, first))
+    f = g0.projection
+    pvalid = jnp.zeros(L, bool).at[f.point_idx].max(f.weight > 0)
+    eye = jnp.eye(4, dtype=x0.points.dtype)
+    A = jax.lax.cond(realign, lambda: trajectory.align_to_surface(x0.points, pvalid, surface, cfg.assoc), lambda: eye)
+    placed = trajectory.move_surface(surface, A)
+    # the prior's std: the configured one or, when larger, the spread of the landmarks about the surface at
+    # the memory-free optimum (a map less accurate than the window, or placed less accurately, holds less),
+    # and at least a share of the map's voxel (its points are voxel means, its planes fitted at that scale)
+    _, near, plane = trajectory.associate_surface(x0.points, pvalid, placed, cfg.assoc)
+    spread = 1.4826 * factors.masked_median(plane, near)
+    sigma = jnp.maximum(cfg.assoc.plane_sigma_ratio * surface.d_scene,
+                        jnp.where(jnp.sum(near) >= cfg.min_memory_landmarks, spread, 0.0))
+    sigma = jnp.maximum(sigma, cfg.memory_sigma_voxels * placed.voxel)
+    g1, matched = trajectory.memory_point_prior(g0, x0.points, pvalid, placed, cfg.assoc, sigma=sigma)
+    res = lm.solve(g1, x0, rc.solver)
+    poses1 = factors.orthonormalize_poses(res.params.poses)
+    cost_own, _ = structure_only_cost(g0, poses1, res.params.points, min_observations=rc.solver.min_observations)
+    stat = (2.0 * (cost_own - ref0.result.cost)).astype(win.poses.dtype)
+    seen = jnp.zeros(win.poses.shape[0], jnp.int32).at[obs.pose_idx].max(ref0.inlier.astype(jnp.int32))
+    thr = trajectory.chi2_quantile(rc.gate_quantile, 6.0 * jnp.maximum(jnp.sum(seen) - 1, 1).astype(win.poses.dtype))
+    fixed = restore_depth_scale(poses1, win.poses, res.params.points, lm_.points, lm_.seed, first)
+    fixed = jnp.where(win.valid[:, None, None], fixed, win.poses)
+    accept = (jnp.sum(matched) >= cfg.min_memory_landmarks) & (stat <= thr) & jnp.all(jnp.isfinite(fixed))
+    return fixed, accept, A, matched, stat, thr
 
 
 def window_end(bank, key, recalled, recalled_T, win: Window, lm_: Landmarks, mem_cfg: memory.MemoryConfig,
                cfg: PipelineConfig, written=-1):
-    """The window that ends at this frame, in the paper's order (one branch of the step's ``lax.cond``):
+    """The window that ends at this frame (one branch of the step's ``lax.cond``):
 
-    1. **identify**: recall + verify the window's static cloud, keyframe descriptors and 3D keypoints,
-       posed by its initial poses (priors carried by the anchor), against the bank
-       (:func:`cm3d.memory.identify`);
-    2. **factor graph** with the memory landmarks of the map this sequence recalled from an earlier
-       sequence (``recalled`` with the Sim(3) ``recalled_T`` sequence -> map, which keeps its placement:
-       a window that fails verification still uses it) or, when this window verified another earlier
-       map, of that one (placed by the verification, re-fitted to the first solve's landmarks;
-       :func:`factor_graph`), so a recall improves the window that made it;
-    3. **update** the bank with the window posed by its *refined* poses: merged into that map
-       (:func:`cm3d.memory.update_map`), else into the map this sequence stored (``written``, in the
-       sequence's frame), else stored as a new map.
+    1. **factor graph** without memory (:func:`factor_graph`: tracks checked against the prior, LM,
+       outlier rejection, LM, significance gate, depth-scale gauge): exactly the memory-free result;
+    2. **identify**: recall + verify the window's static cloud, keyframe descriptors and 3D keypoints,
+       posed by those *refined* poses and merged with the map the sequence stored so far
+       (:func:`sequence_query`), against the bank *without the map this
+       sequence stored itself* (``written``: its keyframes are the nearest descriptors of every later
+       window of the sequence and would take all the votes, so an earlier visit's map was never a
+       candidate after the first window) (:func:`cm3d.memory.identify`);
+    3. **factor graph with memory** (:func:`memory_refinement`) from the memory-free optimum, with the
+       surface of the map this sequence recalled from an earlier sequence (``recalled`` with the
+       Sim(3) ``recalled_T`` sequence -> map, which keeps its placement), or of the earlier map this
+       window verified (placed by the verification, re-fitted to the landmarks), else of the map the
+       sequence stored (``cfg.own_map_landmarks``: the previous windows' refined surface, in the
+       sequence's frame). Its poses replace the memory-free ones only when the memory-free
+       refinement passed the gate and the memory is *consistent* with the window's own observations
+       (the χ² test of :func:`memory_refinement`): the memory never makes a window worse than the
+       window alone can tell;
+    4. **update** the bank with the window posed by its final poses: merged into that map
+       (:func:`cm3d.memory.update_map`), else into the map this sequence stored, else stored as a
+       new map.
 
-    Until a map of an earlier sequence is recalled, the map this sequence stored is the source of
-    memory landmarks (``cfg.own_map_landmarks``: the previous windows' refined surface carried across
-    the window boundary, in the sequence's frame); without it a sequence that recalls nothing is
-    refined exactly as without memory. Returns (bank, WindowResult, recalled, recalled_T, written)."""
+    Returns (bank, WindowResult, recalled, recalled_T, written)."""
+    ref, poses, obs, _, n_bad = factor_graph(win, lm_, None, cfg)
+    poses = poses.astype(jnp.float32)
+    n_mem = jnp.zeros((), jnp.int32)
+    mem_stat = mem_thr = jnp.zeros((), jnp.float32)
+    used = jnp.zeros((), bool)
     if cfg.use_memory:
-        entry0 = window_entry(win, mem_cfg, cfg)
-        ident = memory.identify(bank, entry0, mem_cfg, key)
+        entry0 = sequence_query(bank, written, window_entry(win.replace(poses=poses), mem_cfg, cfg), mem_cfg)
+        M = bank.map_valid.shape[0]
+        others = bank.replace(map_valid=bank.map_valid & (jnp.arange(M) != written))
+        ident = memory.identify(others, entry0, mem_cfg, key)
         hit = ident.map_id >= 0
-        # a map new to this sequence is placed by this window's verification (prior-posed geometry):
-        # re-fitted to the refined landmarks; the sequence's map keeps its placement (no drift)
-        other = hit & (ident.map_id != written)
-        new_map = other & (ident.map_id != recalled)
+        new_map = hit & (ident.map_id != recalled)
         use_map = jnp.where(new_map, ident.map_id, recalled).astype(jnp.int32)
         use_T = jnp.where(new_map, ident.verification.transform, recalled_T).astype(jnp.float32)
         d_scene = trajectory.scene_scale(win.depth, win.static & win.valid[:, None, None])
         # without a recalled map: the surface the sequence's earlier windows stored (its own frame)
         own = cfg.own_map_landmarks & (use_map < 0) & (written >= 0)
-        surface = memory_surface(bank, jnp.where(own, written, use_map), jnp.where(own, jnp.eye(4), use_T), d_scene)
-        realign = new_map
-    else:
-        surface, realign = None, False
-    ref, poses, obs, n_mem, n_bad = factor_graph(win, lm_, surface, cfg, realign)
-    poses = poses.astype(jnp.float32)
-    if cfg.use_memory:
-        use_T = (use_T @ ref.alignment.astype(jnp.float32)).astype(jnp.float32)
+        src = jnp.where(own, written, use_map)
+        surface = memory_surface(bank, src, jnp.where(own, jnp.eye(4), use_T), d_scene)
+        first = obs.valid.reshape(lm_.obs_valid.shape)[:, 0]  # tracks that passed the prior check
+        pm, ok, A, matched, mem_stat, mem_thr = memory_refinement(win, lm_, ref, obs, first, surface, cfg, new_map)
+        n_mem = jnp.sum(matched)
+        used = (src >= 0) & ref.refined & ok
+        poses = jnp.where(used, pm.astype(jnp.float32), poses)
+        use_T = (use_T @ A.astype(jnp.float32)).astype(jnp.float32)
         entry = window_entry(win.replace(poses=poses), mem_cfg, cfg)
         # else the sequence's own map, whose frame is the sequence's (identity: exact, no ICP noise)
         target = jnp.where(use_map >= 0, use_map, written).astype(jnp.int32)
@@ -829,7 +935,8 @@ def window_end(bank, key, recalled, recalled_T, win: Window, lm_: Landmarks, mem
                        observations=jnp.sum(obs.valid).astype(jnp.int32), inliers=jnp.sum(ref.inlier).astype(jnp.int32),
                        landmarks=jnp.sum(obs.valid.reshape(lm_.obs_valid.shape)[:, 0]).astype(jnp.int32),
                        memory_landmarks=n_mem.astype(jnp.int32), iterations=ref.result.iterations.astype(jnp.int32),
-                       recall=report, inconsistent=n_bad.astype(jnp.int32))
+                       recall=report, inconsistent=n_bad.astype(jnp.int32), memory_used=used,
+                       memory_stat=mem_stat.astype(jnp.float32), memory_threshold=mem_thr.astype(jnp.float32))
     return bank, res, recalled, recalled_T, written
 
 
@@ -839,7 +946,8 @@ def _empty_result(cfg: PipelineConfig, mem_cfg: memory.MemoryConfig) -> WindowRe
     return WindowResult(poses=jnp.broadcast_to(jnp.eye(4, dtype=jnp.float32), (W, 4, 4)), index=jnp.zeros(W, jnp.int32),
                         valid=jnp.zeros(W, bool), refined=jnp.zeros((), bool), gate_stat=jnp.zeros(()),
                         gate_threshold=jnp.zeros(()), observations=z, inliers=z, landmarks=z, memory_landmarks=z,
-                        iterations=z, recall=_empty_report(mem_cfg.top_k), inconsistent=z)
+                        iterations=z, recall=_empty_report(mem_cfg.top_k), inconsistent=z,
+                        memory_used=jnp.zeros((), bool), memory_stat=jnp.zeros(()), memory_threshold=jnp.zeros(()))
 
 
 def _bank_config(bank: memory.MemoryBank, cfg: PipelineConfig) -> memory.MemoryConfig:
@@ -991,6 +1099,8 @@ def collect(outputs: StepOutputs, sequence, cfg: PipelineConfig = PipelineConfig
             "map_id": int(r.map_id), "created_map": bool(r.created),
             "refined": bool(w.refined), "gate_stat": float(w.gate_stat), "gate_threshold": float(w.gate_threshold),
             "landmarks": int(w.landmarks), "memory_landmarks": int(w.memory_landmarks),
+            "memory_used": bool(w.memory_used), "memory_stat": float(w.memory_stat),
+            "memory_threshold": float(w.memory_threshold),
             "inconsistent_tracks": int(w.inconsistent),
             "observations": int(w.observations), "inliers": int(w.inliers), "lm_iterations": int(w.iterations),
         })

@@ -394,13 +394,15 @@ def move_surface(mem: MemorySurface, T) -> MemorySurface:
 
 
 def memory_point_prior(graph: factors.FactorGraph, points, point_valid, mem: MemorySurface,
-                       cfg: AssociationConfig = AssociationConfig()):
+                       cfg: AssociationConfig = AssociationConfig(), sigma=None):
     """``graph`` with point-to-plane priors on the landmarks (L, 3) associated with the remembered
     surface (:func:`associate_surface`) and their projections flagged as memory (``σ² ← α σ²``).
+    ``sigma``: the priors' std (scene units; default ``cfg.plane_sigma_ratio · d_scene``).
     Returns (graph, matched (L,))."""
     idx, matched, _ = associate_surface(points, point_valid, mem, cfg)
     n = mem.normals[idx]
-    sigma = jnp.maximum(cfg.plane_sigma_ratio * mem.d_scene, 1e-9)
+    sigma = cfg.plane_sigma_ratio * mem.d_scene if sigma is None else sigma
+    sigma = jnp.maximum(sigma, 1e-9)
     S = jnp.zeros((points.shape[0], 3, 3), points.dtype).at[:, 0, :].set(n / sigma)
     g = factors.with_point_prior(graph, mem.points[idx], S, matched)
     f = g.projection

@@ -17,8 +17,10 @@ revisit (visit 2), compared with the ground truth by ATE / RPE trans (m, Sim(3)-
   gives PnP). Not 2D-3D matches against the first visit's map;
 * ``no_memory``: cm3d with the memory switched off (``PipelineConfig.use_memory=False``: no
   recall, no memory landmarks), the revisit alone;
-* ``memory``: cm3d with the memory bank of visit 1 (per window: recall and verification with the
-  prior-posed window, the factor graph with the recalled map's landmarks held on its surface, update).
+* ``memory``: cm3d with the memory bank of visit 1 (per window: the factor graph without memory,
+  recall and verification with the refined window merged with what the sequence stored so far, the
+  factor graph again with the recalled map's (else the sequence's own map's) landmarks held on its
+  surface, kept only when it agrees with the window's own observations, update).
 
 ``recalled`` is the fraction of revisits in which a window recalled (verified) a map stored by
 visit 1. JSON keys (means over scenes): ``ate_<m>``, ``rpe_trans_<m>``, ``rpe_rot_<m>`` for
@@ -175,7 +177,7 @@ def scene_row(scene: int, frames: int, wcfg, quick: bool, use_cache: bool = Fals
     pnp, pnp_ok = pnp_baseline(seq, mem.masks, quick)
     est = {"prior": seq.cam_to_world, "pnp": pnp, "no_memory": nomem.poses, "memory": mem.poses}
     row = {"scene": scene, "recalled": recalled_earlier_map(mem), "pnp_ok": pnp_ok,
-           "memory_landmarks": int(sum(w["memory_landmarks"] for w in mem.windows)),
+           "memory_landmarks": int(sum(w["memory_landmarks"] for w in mem.windows if w["memory_used"])),
            "ate_visit1_prior": evaluate(run["seqs"][0], run["seqs"][0].cam_to_world)["ate"],
            "ate_visit1_cm3d": evaluate(run["seqs"][0], run["res_mem"][0].poses)["ate"]}
     for m, poses in est.items():

@@ -99,36 +99,49 @@ def test_vmap_over_two_sequences_equals_separate_runs(prepared, scanned):
         assert close.mean() > 0.95
 
 
-def test_recall_feeds_the_same_window_and_lowers_its_pose_error(scanned):
+def test_recall_feeds_the_same_window_and_memory_never_hurts(scanned):
     """The one-call API threads one memory across visits, and a recall feeds the graph of the window
-    that made it (recall -> verify -> graph with memory landmarks -> update). Visit 1 with exact priors
-    stores the scene; the same path with moderate priors is recalled in its *first* window, whose graph
-    holds landmarks on the recalled surface and ends nearer the truth than without memory. (The old
-    order, refine then remember, gave the first window no memory landmarks at all.) Reference: the
-    ground-truth poses; the no-memory run is the module's compiled program."""
+    that made it (refine -> recall / verify with the refined window -> graph with the recalled map's
+    surface -> update). Visit 1 with exact priors stores the scene; the same path with moderate priors
+    is recalled in its *first* window, whose landmarks are associated with the recalled surface.
+
+    Memory never hurts (issue #7): the memory-constrained solution replaces the memory-free one only
+    when it agrees with the window's own observations (a χ² test) on enough landmarks, so every
+    sequence ends at most as far from the truth as without memory. Scenes 1 and 3 (one visit, the
+    sequence's own stored map as memory for its second window) got worse with the old pipeline
+    (ATE 0.0392 -> 0.0401 and 0.0187 -> 0.0192 at 48x64). Reference: the ground-truth poses; the
+    no-memory runs are the module's compiled program."""
     from cm3d.eval import metrics
 
+    mem_cfg = pipeline.small_config()
     exact = synthetic.generate(0, 0, 8, "none", WORLD)
     noisy = synthetic.generate(0, 0, 8, "moderate", WORLD)  # same images, noisy priors
-    bank, (first, again) = pipeline.run([exact, noisy], pipeline.small_config())
+    bank, (first, again) = pipeline.run([exact, noisy], mem_cfg)
     assert first.windows[0]["created_map"] and first.windows[0]["map_id"] == 0
     assert int(bank.map_valid.sum()) == 1  # visit 1's second window and the revisit merged into map 0
     w = again.windows[0]
     assert w["candidates"] and w["candidates"][0] == 0
     assert w["accepted"] and w["recalled_map"] == 0 and not w["created_map"]
     assert w["memory_landmarks"] > 0
-    x = jax.tree.map(jnp.asarray, pipeline.prepare(noisy, CFG))
-    _, out = pipeline.run_sequence(scanned["state0"], x, CFG)
-    alone = pipeline.collect(out, noisy, CFG)
-    assert alone.windows[0]["memory_landmarks"] == 0
-    idx = np.arange(w["frames"][0], w["frames"][1] + 1)
-    gt = noisy.gt.cam_to_world[idx]
+    assert all(np.isfinite(x["memory_stat"]) for x in again.windows)
 
-    def ate(poses):
-        return metrics.evaluate_trajectories(idx * 1.0, gt, idx * 1.0, poses[idx])["ate"]
+    def ate(seq, poses):
+        return metrics.evaluate_trajectories(seq.timestamps, seq.gt.cam_to_world, seq.timestamps, poses)["ate"]
 
-    assert ate(again.poses) < ate(alone.poses) < ate(noisy.cam_to_world), (ate(again.poses), ate(alone.poses))
+    def alone(seq):
+        x = jax.tree.map(jnp.asarray, pipeline.prepare(seq, CFG))
+        _, out = pipeline.run_sequence(scanned["state0"], x, CFG)
+        res = pipeline.collect(out, seq, CFG)
+        assert all(x["memory_landmarks"] == 0 and not x["memory_used"] for x in res.windows)
+        return res.poses
+
+    assert ate(noisy, again.poses) <= ate(noisy, alone(noisy)) + 1e-6
     assert np.all(np.isfinite(again.poses))
+    for scene in (1, 3):
+        seq = synthetic.generate(scene, 1, 8, "moderate", WORLD)
+        _, (own,) = pipeline.run([seq], mem_cfg)
+        assert own.windows[1]["memory_landmarks"] > 0  # the first window's stored surface was offered
+        assert ate(seq, own.poses) <= ate(seq, alone(seq)) + 1e-6, (scene, own.windows)
 
 
 def test_restore_depth_scale_undoes_a_shrunk_window():
