@@ -50,7 +50,7 @@ import numpy as np
 from flax import struct
 
 from cm3d import memory, trajectory
-from cm3d.motion import FramePrior, MotionConfig, motion_cues
+from cm3d.motion import FramePrior, MotionConfig, motion_cues, moving_tracks
 from cm3d.ops import descriptors, se3
 from cm3d.ops.flow import FlowConfig
 from cm3d.ops.gmm import GMMConfig
@@ -751,6 +751,9 @@ def factor_graph(win: Window, lm_: Landmarks, surface: trajectory.MemorySurface 
     T = cfg.track.track_length
     obs_all_first = obs.valid.reshape(lm_.obs_valid.shape)[:, 0]
     first = prior_consistent_tracks(win, lm_, obs, cfg)
+    # slow movers the per-frame motion cue misses: tracks a robust rigid fit of their group leaves moving
+    first = first & ~moving_tracks(lm_.points, win.poses, win.intrinsic, obs.pose_idx, obs.uv, obs.valid,
+                                   lm_.seed // cfg.track.keyframe_every, cfg.seed_blocks, cfg.motion)
     obs = obs.replace(valid=obs.valid & jnp.repeat(first, T))
     ungated = dataclasses.replace(cfg.refine, gate=False)
     ref = trajectory.refine_trajectory(win.poses, win.intrinsic, lm_.points, obs, ungated, pose_valid=win.valid,
