@@ -1217,30 +1217,16 @@ _residuals = jax.jit(pose_graph_residuals)
 
 @functools.partial(jax.jit, static_argnames=("max_steps",))
 def _solve_pose_graph(G0, idx_a, idx_b, measured, sigma, max_steps: int):
-    """Levenberg–Marquardt (Marquardt damping, dense: 7 (K-1) unknowns) on the chart increments δ
-    (``G_k = G0_k Exp(δ_k)``), until a step lowers the cost by less than 1e-12 relative or
-    ``max_steps`` trials. Returns (G (K, 4, 4), cost, accepted steps)."""
-    n = G0.shape[0] - 1
-    res = lambda y: pose_graph_residuals(y.reshape(n, 7), G0, idx_a, idx_b, measured, sigma).ravel()  # noqa: E731
-    cost_of = lambda y: 0.5 * jnp.sum(res(y) ** 2)  # noqa: E731
-    eye = jnp.eye(7 * n, dtype=G0.dtype)
+    """Levenberg–Marquardt (optimistix, dense: 7 (K-1) unknowns) on the chart increments δ
+    (``G_k = G0_k Exp(δ_k)``). Returns (G (K, 4, 4), cost, steps)."""
+    import optimistix as optx
 
-    def body(c):
-        y, lam, cost, it, acc, _ = c
-        J = jax.jacfwd(res)(y)
-        H, g = J.T @ J, J.T @ res(y)
-        yn = y - jnp.linalg.solve(H + lam * (jnp.diag(jnp.diag(H)) + 1e-12 * eye), g)
-        cn = cost_of(yn)
-        better = jnp.isfinite(cn) & (cn < cost)
-        done = better & (cost - cn <= 1e-12 * cost)
-        return (jnp.where(better, yn, y), jnp.where(better, lam / 10.0, lam * 10.0), jnp.where(better, cn, cost),
-                it + 1, acc + better, done | (lam > 1e12))
-
-    y0 = jnp.zeros(7 * n, G0.dtype)
-    init = (y0, jnp.asarray(1e-3, G0.dtype), cost_of(y0), 0, 0, False)
-    y, _, cost, _, acc, _ = jax.lax.while_loop(lambda c: (c[3] < max_steps) & ~c[5], body, init)
-    d = jnp.concatenate([jnp.zeros((1, 7), G0.dtype), y.reshape(n, 7)])
-    return G0 @ jax.vmap(_sim3_exp)(d), cost, acc
+    fn = lambda y, args: pose_graph_residuals(y, G0, idx_a, idx_b, measured, sigma)  # noqa: E731
+    sol = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10),
+                             jnp.zeros((G0.shape[0] - 1, 7), G0.dtype), max_steps=max_steps, throw=False)
+    d = jnp.concatenate([jnp.zeros((1, 7), G0.dtype), sol.value])
+    r = pose_graph_residuals(sol.value, G0, idx_a, idx_b, measured, sigma)
+    return G0 @ jax.vmap(_sim3_exp)(d), 0.5 * jnp.sum(r * r), sol.stats["num_steps"]
 
 
 def sim3_pose_graph(G0, A, loops=(), cfg: PoseGraphConfig = PoseGraphConfig()):

@@ -43,13 +43,39 @@ def transform_points(T: jnp.ndarray, p: jnp.ndarray) -> jnp.ndarray:
 
 
 def exp(xi: jnp.ndarray) -> jnp.ndarray:
-    """Exponential map, tangent (..., 6) -> pose (..., 4, 4)."""
-    return jaxlie.SE3.exp(xi).as_matrix()
+    """Exponential map, tangent (..., 6) (translation first, as jaxlie) -> pose (..., 4, 4).
+
+    The rotation is jaxlie's ``SO3.exp``; the translation ``V(ω) v`` is computed here:
+    ``V = I + b W + c W²`` with ``b = (1 - cos θ) / θ²``, ``c = (θ - sin θ) / θ³``, Taylor series below
+    θ = 0.1, where the closed forms cancel catastrophically in float32 (jaxlie's ``SE3.exp`` is ~1e-3
+    off for a unit translation at θ ≈ 2e-3 in float32)."""
+    v, w = xi[..., :3], xi[..., 3:]
+    th2 = jnp.sum(w * w, -1, keepdims=True)
+    small = th2 < 1e-2
+    th = jnp.sqrt(jnp.where(small, 1.0, th2))
+    b = jnp.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, (1.0 - jnp.cos(th)) / (th * th))
+    c = jnp.where(small, 1.0 / 6.0 - th2 / 120.0 + th2 * th2 / 5040.0, (th - jnp.sin(th)) / (th * th * th))
+    wv = jnp.cross(w, v)
+    t = v + b * wv + c * jnp.cross(w, wv)
+    return make_pose(jaxlie.SO3.exp(w).as_matrix(), t)
 
 
 def log(T: jnp.ndarray) -> jnp.ndarray:
-    """Logarithm, pose (..., 4, 4) -> tangent (..., 6)."""
-    return jaxlie.SE3.from_matrix(T).log()
+    """Logarithm, pose (..., 4, 4) -> tangent (..., 6) (translation first, as jaxlie).
+
+    The rotation part is jaxlie's ``SO3.log``; the translation part ``V(ω)^{-1} t`` is computed here:
+    ``V^{-1} = I - W/2 + c(θ) W²`` with ``c = (1 - θ sin θ / (2 (1 - cos θ))) / θ²``, a Taylor series
+    below θ = 0.1, where the closed form cancels catastrophically in float32 (jaxlie's ``SE3.log``
+    loses ~1e-3 of a unit translation at θ ≈ 2e-3 in float32)."""
+    w = jaxlie.SO3.from_matrix(T[..., :3, :3]).log()
+    t = T[..., :3, 3]
+    th2 = jnp.sum(w * w, -1, keepdims=True)
+    small = th2 < 1e-2
+    th = jnp.sqrt(jnp.where(small, 1.0, th2))
+    closed = (1.0 - th * jnp.sin(th) / (2.0 * (1.0 - jnp.cos(th)))) / (th * th)
+    c = jnp.where(small, 1.0 / 12.0 + th2 / 720.0 + th2 * th2 / 30240.0, closed)
+    wt = jnp.cross(w, t)
+    return jnp.concatenate([t - 0.5 * wt + c * jnp.cross(w, wt), w], -1)
 
 
 def ominus(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
