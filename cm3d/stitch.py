@@ -389,6 +389,19 @@ def _residual_stats(A, src, dst, is_pt):
     return r, sigma
 
 
+def _irls_sim3(src, dst, w0, resid, iterations: int, k: float):
+    """Weighted Umeyama Sim(3) ``dst ≈ A src``, then ``iterations`` IRLS rounds with Cauchy weights
+    ``w0 / (1 + (r / (k σ))^2)``; ``resid(A)`` -> (residual norms, robust σ)."""
+    A = umeyama_transform(src, dst, w0, with_scale=True)
+
+    def irls(A, _):
+        r, sigma = resid(A)
+        An = umeyama_transform(src, dst, w0 / (1.0 + (r / (k * sigma)) ** 2), with_scale=True)
+        return jnp.where(jnp.all(jnp.isfinite(An)), An, A), None
+
+    return jax.lax.scan(irls, A, None, length=iterations)[0]
+
+
 @functools.partial(jax.jit, static_argnames=("cfg", "fit"))
 def align_overlap(prev, nxt, A0=None, cfg: StitchConfig = StitchConfig(), fit: bool = True):
     """Sim(3) ``A`` (4x4, ``[s R, t]``) mapping chunk k's frame to chunk k-1's, from their shared frames.
@@ -407,15 +420,8 @@ def align_overlap(prev, nxt, A0=None, cfg: StitchConfig = StitchConfig(), fit: b
     src, dst, w0, is_pt, med_depth = _overlap_correspondences(prev, nxt, rows, cols, cfg.centre_weight)
     n_pt = jnp.sum(is_pt)
     if fit:
-        A = umeyama_transform(src, dst, w0, with_scale=True)
-
-        def irls(A, _):
-            r, sigma = _residual_stats(A, src, dst, is_pt)
-            w = w0 / (1.0 + (r / (cfg.robust_k * sigma)) ** 2)
-            An = umeyama_transform(src, dst, w, with_scale=True)
-            return jnp.where(jnp.all(jnp.isfinite(An)), An, A), None
-
-        A, _ = jax.lax.scan(irls, A, None, length=cfg.robust_iterations)
+        A = _irls_sim3(src, dst, w0, lambda A: _residual_stats(A, src, dst, is_pt), cfg.robust_iterations,
+                       cfg.robust_k)
     else:
         A = jnp.asarray(A0, src.dtype)
     r, sigma = _residual_stats(A, src, dst, is_pt)
@@ -735,19 +741,11 @@ def robust_sim3(src, dst, ok, iterations: int = 8, k: float = 2.0):
     weighted Umeyama, then ``iterations`` IRLS rounds with Cauchy weights at ``k`` robust sigmas
     (1.4826 MAD). Returns (A (4, 4), inlier fraction (within 3 robust sigmas), valid count, robust
     residual sigma over the median distance of ``dst`` from the origin). ``vmap`` over pairs."""
-    w0 = ok.astype(src.dtype)
-    A = umeyama_transform(src, dst, w0, with_scale=True)
-
     def resid(A):
         r = jnp.linalg.norm(_apply_sim3(A, src) - dst, axis=-1)
         return r, jnp.maximum(1.4826 * masked_median(r, ok), 1e-12)
 
-    def irls(A, _):
-        r, sigma = resid(A)
-        An = umeyama_transform(src, dst, w0 / (1.0 + (r / (k * sigma)) ** 2), with_scale=True)
-        return jnp.where(jnp.all(jnp.isfinite(An)), An, A), None
-
-    A, _ = jax.lax.scan(irls, A, None, length=iterations)
+    A = _irls_sim3(src, dst, ok.astype(src.dtype), resid, iterations, k)
     r, sigma = resid(A)
     n = jnp.sum(ok)
     rel = sigma / jnp.maximum(masked_median(jnp.linalg.norm(dst, axis=-1), ok), 1e-12)
