@@ -12,9 +12,12 @@ are kept sorted by grid cell (:func:`sort_by_cell`) for neighbour search by bina
 Recognition (:func:`identify`, pure and vmappable over queries): hashed 2D :func:`recall` of
 ``top_k`` candidates -> keypoint matching + Sim(3) RANSAC per candidate (3-point hypotheses, and
 2-point hypotheses about both frames' estimated up axes: :func:`up_axis`, :func:`upright_pairs`)
--> of the best candidate's poses, the one with the most colour-consistent overlap -> Sim(3) ICP,
-accepted on keypoint inliers, ICP inlier count / fitness / RMSE and colour agreement
-(:func:`verify`). Optionally (``cfg.fallback_yaws > 0``, off by default) a query the keypoint path
+-> of the best candidate's poses, the one with the most colour-consistent overlap -> Sim(3) ICP ->
+accepted by the *acceptance model*: a linear score of the weak signals (vote share, keypoint
+matches and inliers, their margin over the other candidates, screening overlap, ICP fitness / RMSE,
+colour agreement: :data:`ACCEPTANCE_FEATURES`, :func:`acceptance_features`) with weights fitted on the
+benchmark's tuning split (``MemoryConfig.accept_*``; empty weights: the AND of the hard thresholds of
+:func:`verify`). Optionally (``cfg.fallback_yaws > 0``, off by default) a query the keypoint path
 rejects gets a keypoint-free check of the same candidate: yaw hypotheses about both clouds' up axes
 with scale from their floor-to-ceiling spans and translation from FFT-correlated wall occupancy grids
 (:func:`global_hypotheses`), colour-gated Sim(3) ICP, stricter thresholds (:func:`_fallback_stage`).
@@ -55,6 +58,26 @@ FORMAT_VERSION = 2  # 2: 3D keypoints (kp_points, kp_desc, kp_valid)
 
 
 DESCRIPTOR_3D_DIMS = {"handcrafted": descriptors.CLOUD_DIM, "pointnet2": 512}
+
+# the scores identify computes for its verified candidate, in the order of acceptance_features' vector (the
+# acceptance model's inputs; counts enter as log(1 + n))
+ACCEPTANCE_FEATURES = (
+    "vote_share",  # share of the query's keyframes voting for the candidate (2D recall)
+    "score_margin",  # its recall score (votes + w_cloud x 3D similarity) minus the best other candidate's
+    "cloud_similarity",  # cosine of the 3D global descriptors
+    "log_matches",  # strict keypoint matches (mutual + ratio test)
+    "log_triangle_inliers",  # distinct RANSAC inliers of the triangle hypotheses
+    "log_upright_inliers",  # ... of the upright pairs (= triangle's without them)
+    "log_pose_inliers",  # distinct RANSAC inliers of the verified pose
+    "inlier_margin",  # log(1 + keypoint inliers) minus the best other candidate's
+    "screen_overlap",  # share of the screening voxels with a colour-consistent map point, chosen pose
+    "log_icp_inliers",  # ICP inlier count
+    "fitness",  # ICP fitness
+    "rmse_voxels",  # ICP inlier RMSE in map voxels
+    "colour_agreement",  # share of ICP inliers whose colours agree
+    "scale_change",  # |log(ICP scale / RANSAC scale)|, at most 2 (a collapsed ICP is no outlier to the model)
+    "log_scale",  # |log(ICP scale)| (query -> map), at most 2
+)
 
 
 class MemoryFullError(RuntimeError):
@@ -119,6 +142,20 @@ class MemoryConfig:
     fallback_max_rmse: float = 0.6  # ... inlier RMSE (map voxels) ...
     fallback_colour_difference: float = 15.0  # ... and the share of inliers within this RGB distance ...
     fallback_min_colour: float = 0.7  # ... at least this
+    # acceptance model (see ACCEPTANCE_FEATURES, acceptance_features): when accept_weights is set (and
+    # verification is "full"), identify accepts its candidate on the linear score
+    #   sum(accept_weights * (features - accept_mean) / accept_scale) + accept_bias >= 0
+    # instead of the AND of the thresholds above (hard checks kept: a stored map, finite transform, scale in
+    # scale_range). A logistic regression on standardised features fitted on the tuning split of
+    # experiments/memory_recall.py (--fit-acceptance prints these numbers); the operating threshold is folded
+    # into accept_bias. Empty: the thresholds decide. The defaults: `memory_recall.py --fit-acceptance` (200 maps).
+    accept_weights: tuple[float, ...] = (0.26901, 0, 0, 0.54994, 0.64111, 0.60447, 0.56578, 0.32399, 0.40942, 0,
+                                         -0.09093, -0.29532, 0.58535, 0, 0)
+    accept_mean: tuple[float, ...] = (0.69694, 0, 0, 2.84451, 1.82067, 2.22308, 2.11602, 1.31625, 0.49289, 0, 0.69932,
+                                      0.62117, 0.72355, 0, 0)
+    accept_scale: tuple[float, ...] = (0.31332, 1, 1, 0.84059, 1.18269, 0.73584, 0.91139, 1.25907, 0.30157, 1, 0.25848,
+                                       0.16494, 0.2471, 1, 1)
+    accept_bias: float = 0.07032
 
     def __post_init__(self):
         if self.descriptor_3d not in DESCRIPTOR_3D_DIMS:
@@ -145,6 +182,15 @@ class MemoryConfig:
             raise ValueError(f"MemoryConfig.up_max_angle: need 0 < degrees < 90, got {self.up_max_angle}")
         if not 0 < self.scale_range[0] < self.scale_range[1]:
             raise ValueError(f"MemoryConfig.scale_range: need 0 < lo < hi, got {self.scale_range}")
+        if self.accept_weights or self.accept_mean or self.accept_scale:
+            n = len(ACCEPTANCE_FEATURES)
+            for name in ("accept_weights", "accept_mean", "accept_scale"):
+                v = getattr(self, name)
+                if len(v) != n or not all(np.isfinite(v)):
+                    raise ValueError(f"MemoryConfig.{name}: need {n} finite numbers (one per ACCEPTANCE_FEATURES "
+                                     f"entry), got {len(v)}: {v}")
+            if not all(x > 0 for x in self.accept_scale):
+                raise ValueError(f"MemoryConfig.accept_scale: need positive numbers, got {self.accept_scale}")
 
 
 @struct.dataclass
@@ -447,12 +493,17 @@ def _downsample_to_capacity(points, valid, features, voxel_size, capacity: int):
     return grid(vs), vs
 
 
-def _entry_from_points(points, colors, conf, valid, kf_desc, kf_valid, voxel_size, cfg: MemoryConfig) -> MapEntry:
+def _entry_from_points(points, colors, conf, valid, kf_desc, kf_valid, voxel_size, cfg: MemoryConfig,
+                       min_support: float = 0.0) -> MapEntry:
     """Downsample to the bank's capacity and describe (see :func:`build_entry`)."""
     from cm3d.ops.neighbors import estimate_normals
 
     feats = jnp.concatenate([colors.astype(jnp.float32), conf[:, None]], axis=1)
     vox, vs = _downsample_to_capacity(points, valid, feats, voxel_size, cfg.max_points)
+    if min_support > 0:  # voxels that few samples fell into: stray points, not surface (build_entry)
+        med = jnp.nanmedian(jnp.where(vox.valid, vox.weight, jnp.nan))
+        keep = vox.valid & (vox.weight >= min_support * med)
+        vox = vox.replace(points=jnp.where(keep[:, None], vox.points, 0.0), valid=keep)
     normals = estimate_normals(vox.points, vox.valid, k=16, radius=cfg.normal_radius)
     return MapEntry(points=vox.points, normals=jnp.where(vox.valid[:, None], normals, 0.0),
                     conf=vox.features[:, 3], colors=jnp.clip(jnp.round(vox.features[:, :3]), 0, 255).astype(jnp.uint8),
@@ -461,14 +512,21 @@ def _entry_from_points(points, colors, conf, valid, kf_desc, kf_valid, voxel_siz
 
 
 def build_entry(cloud: SequenceCloud, kf_desc, kf_valid, cfg: MemoryConfig,
-                keypoints: Keypoints | None = None) -> MapEntry:
+                keypoints: Keypoints | None = None, min_support: float = 0.0) -> MapEntry:
     """A new map from a sequence: adaptive voxel size from the scene extent, mean point, colour and
     confidence per voxel, PCA normals, the 3D descriptor, the keyframe descriptors and (optional)
-    the sequence's 3D keypoints (:func:`lift_keypoints`, same frame as ``cloud``)."""
+    the sequence's 3D keypoints (:func:`lift_keypoints`, same frame as ``cloud``).
+
+    ``min_support`` (a share, 0 = keep all): voxels with fewer samples than this share of the median
+    voxel's are dropped. A map is capacity-bound, so its voxels are coarse (0.09-0.13 m at 384x512)
+    and a stray sample (a mover the mask missed, a grazing or far pixel) weighs as much as a voxel of
+    surface; measured on the camera-pose revisits, 0.2 lowers a window map's accuracy error
+    (mean distance to the true surface) by 20-30 % for 20-25 % fewer voxels."""
     from cm3d.ops.voxel import adaptive_voxel_size
 
     vs = adaptive_voxel_size(cloud.points, cloud.valid, cfg.voxel_resolution)
-    entry = _entry_from_points(cloud.points, cloud.colors, cloud.conf, cloud.valid, kf_desc, kf_valid, vs, cfg)
+    entry = _entry_from_points(cloud.points, cloud.colors, cloud.conf, cloud.valid, kf_desc, kf_valid, vs, cfg,
+                               min_support)
     if keypoints is not None:
         ok = keypoints.valid & jnp.all(jnp.isfinite(keypoints.points), -1) & jnp.all(jnp.isfinite(keypoints.desc), -1)
         keypoints = Keypoints(jnp.where(ok[:, None], keypoints.points, 0.0).astype(jnp.float32),
@@ -880,15 +938,22 @@ def _refine_and_decide(bank, m, entry: MapEntry, Ts, scales, matches, inliers, c
     with ICP (``cfg.verification == "full"``) the pose with the largest colour-consistent overlap
     (:func:`_screen_poses`; a wrong pose of a box room can fit its geometry well, but rarely its
     colours) is refined by ICP, else the one with most keypoint inliers; then :func:`_decide`."""
+    return _refine_and_decide_screened(bank, m, entry, Ts, scales, matches, inliers, cfg)[0]
+
+
+def _refine_and_decide_screened(bank, m, entry: MapEntry, Ts, scales, matches, inliers, cfg: MemoryConfig):
+    """:func:`_refine_and_decide`, also returning the refined pose's screening overlap (a share of
+    ``cfg.screen_points``; 0 without ICP) and its RANSAC scale."""
     mm = jnp.maximum(m, 0)
     if cfg.verification != "full":
         g = jnp.argmax(inliers)
-        return _decide(bank, m, Ts[g], scales[g], matches, inliers[g], None, cfg)
-    g = 0
-    if Ts.shape[0] > 1:  # colour-consistent overlap first, keypoint inliers break ties
-        g = jnp.argmax(_screen_poses(bank, mm, entry, Ts, cfg) * (cfg.ransac_scored + 1) + inliers)
+        return (_decide(bank, m, Ts[g], scales[g], matches, inliers[g], None, cfg), jnp.zeros((), jnp.float32),
+                scales[g])
+    screen = _screen_poses(bank, mm, entry, Ts, cfg)
+    g = jnp.argmax(screen * (cfg.ransac_scored + 1) + inliers)  # colour-consistent overlap first, inliers break ties
     icp = _icp_stage(bank, mm, entry, Ts[g], cfg)
-    return _decide(bank, m, Ts[g], scales[g], matches, inliers[g], icp, cfg)
+    return (_decide(bank, m, Ts[g], scales[g], matches, inliers[g], icp, cfg), screen[g] / cfg.screen_points,
+            scales[g])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1086,6 +1151,9 @@ class Identification:
     verification: Verification
     map_id: jax.Array
     fallback: Verification | None = None
+    candidate: jax.Array | None = None  # () the verified candidate (-1: none), accepted or not
+    features: jax.Array | None = None  # (len(ACCEPTANCE_FEATURES),) its scores (acceptance_features)
+    acceptance: jax.Array | None = None  # () the acceptance model's score (None without cfg.accept_weights)
 
 
 def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Identification:
@@ -1094,7 +1162,10 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
     2D recall (:func:`recall`) proposes ``cfg.top_k`` candidates; each is checked by keypoint
     matching + Sim(3) RANSAC (triangle and upright-pair hypotheses); the candidate with most RANSAC
     inliers (ties: recall order) is refined from its pose with the most colour-consistent overlap
-    and verified by ICP (:func:`verify`, per ``cfg.verification``). With ``cfg.fallback_yaws`` (and
+    and verified by ICP (:func:`verify`, per ``cfg.verification``); with ``cfg.accept_weights`` (the
+    default) and ``"full"`` verification the acceptance model decides instead of the thresholds:
+    :func:`acceptance_score` of :func:`acceptance_features` >= 0, plus the hard checks (a stored map, a
+    finite transform, a scale in ``cfg.scale_range``). With ``cfg.fallback_yaws`` (and
     ``"full"`` verification) a query the keypoint path rejects gets a second, keypoint-free chance
     against the same candidate (:func:`_fallback_stage`, stricter thresholds); under ``vmap`` both
     paths run for every query (fixed cost: the yaw search and ``cfg.fallback_refine`` ICPs per query).
@@ -1112,15 +1183,69 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
     best = jnp.where(cand >= 0, jnp.max(inliers, 1), -1)
     b = jnp.argmax(best)
     m = cand[b]
-    v = _refine_and_decide(bank, m, entry, Ts[b], scales[b], matches[b], inliers[b], cfg)
+    v, screen, s_kp = _refine_and_decide_screened(bank, m, entry, Ts[b], scales[b], matches[b], inliers[b], cfg)
+    feats = acceptance_features(bank, entry, r, best, b, inliers[b], screen, s_kp, v)
+    score = None
+    if cfg.accept_weights and cfg.verification == "full":
+        score = acceptance_score(feats, cfg)
+        v = v.replace(accepted=_model_accepts(bank, m, v, score, cfg))
     map_id = jnp.where(v.accepted, m, -1)
     if not cfg.fallback_yaws or cfg.verification != "full":
-        return Identification(recall=r, candidate_inliers=best, verification=v, map_id=map_id)
+        return Identification(recall=r, candidate_inliers=best, verification=v, map_id=map_id, candidate=m,
+                              features=feats, acceptance=score)
     fb = _fallback_stage(bank, m, entry, frame, cfg, Ts[b])
     use = ~v.accepted & fb.accepted
     v = jax.tree.map(lambda a, c: jnp.where(use, a, c), fb, v)
     return Identification(recall=r, candidate_inliers=best, verification=v, map_id=jnp.where(use, m, map_id),
-                          fallback=fb)
+                          fallback=fb, candidate=m, features=feats, acceptance=score)
+
+
+def _model_accepts(bank, m, v: Verification, score, cfg: MemoryConfig):
+    """The acceptance model's decision: score >= 0 and the hard checks (a stored map, a finite transform,
+    a scale in ``cfg.scale_range``)."""
+    return ((m >= 0) & bank.map_valid[jnp.maximum(m, 0)] & (score >= 0) & jnp.all(jnp.isfinite(v.transform))
+            & (v.scale >= cfg.scale_range[0]) & (v.scale <= cfg.scale_range[1]))
+
+
+def acceptance_features(bank: MemoryBank, entry: MapEntry, r: Recall, candidate_inliers, b, inliers, screen,
+                        ransac_scale, v: Verification):
+    """The scores of the verified candidate ``r.candidates[b]`` as one vector, in the order of
+    :data:`ACCEPTANCE_FEATURES`: the acceptance model's inputs (:func:`acceptance_score`).
+    ``candidate_inliers`` (top_k,): each candidate's best keypoint inliers (-1: none); ``inliers`` (G,):
+    the candidate's per generator (triangle, upright pairs); ``screen``: the chosen pose's screening
+    overlap (share); ``ransac_scale``: its RANSAC scale; ``v``: its verification (ICP scores). Pure, fixed
+    shape; 0 where not finite or without a candidate."""
+    cand = r.candidates
+    m = cand[b]
+    mm = jnp.maximum(m, 0)
+    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    share = r.votes[mm] / jnp.maximum(jnp.sum(entry.kf_valid), 1)
+    finite = lambda x: jnp.where(jnp.isfinite(x), x, 0.0)  # noqa: E731
+    other = (jnp.arange(cand.shape[0]) != b) & (cand >= 0)
+    margin = finite(r.candidate_scores[b]) - jnp.max(jnp.where(other, finite(r.candidate_scores), 0.0))
+    sim = bank.cloud_desc[mm] @ jnp.asarray(entry.cloud_desc, jnp.float32)
+    log1p = lambda n: jnp.log1p(jnp.maximum(f32(n), 0.0))  # noqa: E731
+    runner = jnp.max(jnp.where(other, candidate_inliers, 0))
+    vs = jnp.maximum(bank.voxel_size[mm], 1e-12)
+    scale = jnp.maximum(v.scale, 1e-12)
+    feats = jnp.stack([
+        f32(share), f32(margin), f32(sim), log1p(v.matches), log1p(inliers[0]), log1p(inliers[-1]),
+        log1p(v.keypoint_inliers),
+        log1p(candidate_inliers[b]) - log1p(runner), f32(screen), log1p(v.inlier_count), f32(v.fitness),
+        f32(v.inlier_rmse) / vs, f32(v.colour_agreement),
+        jnp.minimum(jnp.abs(jnp.log(scale / jnp.maximum(ransac_scale, 1e-12))), 2.0),
+        jnp.minimum(jnp.abs(jnp.log(scale)), 2.0)])
+    present = (m >= 0) & bank.map_valid[mm]
+    return jnp.where(present & jnp.isfinite(feats), feats, 0.0)
+
+
+def acceptance_score(features, cfg: MemoryConfig):
+    """The acceptance model's score of :func:`acceptance_features` (accept when >= 0): a dot product of
+    the standardised features with ``cfg.accept_weights`` plus ``cfg.accept_bias``."""
+    w = jnp.asarray(cfg.accept_weights, jnp.float32)
+    mu = jnp.asarray(cfg.accept_mean, jnp.float32)
+    sd = jnp.asarray(cfg.accept_scale, jnp.float32)
+    return jnp.sum(w * (features - mu) / sd) + jnp.float32(cfg.accept_bias)
 
 
 def relocalize(transform, cam_to_world):

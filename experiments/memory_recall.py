@@ -1,6 +1,7 @@
 """Memory bank recall, verification, relocalisation and map update (the paper's Tables 5 and 9).
 
-    .venv/bin/python experiments/memory_recall.py [--quick] [--json PATH] [--no-cache]
+    .venv/bin/python experiments/memory_recall.py [--quick] [--json PATH] [--no-cache] [--no-tune]
+    .venv/bin/python experiments/memory_recall.py --fit-acceptance   # refit the MemoryConfig accept_* defaults
 
 Synthetic worlds (:mod:`cm3d.data.synthetic`, 120x160 renders, 1 frame per second): scene ``i``
 is stored from a 32-frame look-around visit (visit 0); a *revisit* query is a 12-frame visit of
@@ -14,7 +15,8 @@ pixels (OpenCV) lifted to 3D with the prior depth and poses, static cloud, map e
 (jit, vmapped over a batch of prepared queries, CPU): hashed 2D recall of ``top_k`` candidates,
 keypoint matching + Sim(3) RANSAC per candidate (3-point hypotheses from the strict matches and
 2-point *upright* hypotheses, both frames' up axes estimated from floor/ceiling normals), the pose
-with the largest colour-consistent overlap, Sim(3) ICP verification of the best.
+with the largest colour-consistent overlap, Sim(3) ICP of the best, accepted by the acceptance model (a
+linear score of the pipeline's scores, :data:`cm3d.memory.ACCEPTANCE_FEATURES`).
 
 Held-out split: scenes (and unseen rooms) with an even index form the *tuning* split, odd ones
 the *test* split. The verification thresholds (keypoint inliers, ICP inlier count, fitness, RMSE,
@@ -22,20 +24,29 @@ colour agreement) are chosen on the tuning split only (:func:`tune_thresholds`, 
 accuracy plateau with no false accept, a tuning revisit counting only with a right pose
 (:data:`POSE_TOLERANCE`), then the median of each threshold over that plateau); every
 reported figure below comes from the test split with those thresholds (``--no-tune``: the
-``MemoryConfig`` defaults, which were set from this tuning).
+``MemoryConfig`` defaults, which were set from this tuning). The acceptance model
+(:func:`fit_acceptance`, the headline rows) is fitted on the tuning split too: a logistic regression
+on the standardised features ``ACCEPT_USED`` (right map with a right pose vs everything else), its
+threshold halfway between the highest-scoring tuning wrong candidate (unseen room, wrong map or wrong
+pose) and the next right revisit; ``--fit-acceptance`` only fits it and prints it as ``MemoryConfig``
+defaults (they are that output). Each query's RANSAC key depends on its index only
+(:func:`identify_batch`), so tuning sees the same draws as the evaluation.
 
 Tables:
 - recall per bank size (1, 50, 100, 200 maps; the bank holds all scenes below n, tuning and test):
-  accuracy on test revisits (accepted *and* the right map), false accepts on test unseen rooms,
+  accuracy on test revisits (accepted as the right map *with a right pose*, :data:`POSE_TOLERANCE`;
+  "map only": the right map whatever the pose), false accepts on test unseen rooms,
   queries/s (all queries, batched, compile excluded); size 1 averages the single-map banks of the
   50 test scenes below 100; at 200 maps also the accuracy counting only right poses;
 - ablation at 200 maps (test split): 2D only / 2D+3D keypoints (no ICP) / 2D+3D+ICP without the
-  upright pairs (the previous verification) / full / full + the keypoint-free fallback
+  upright pairs / full with the AND of the tuned thresholds / full with the acceptance model (the
+  headline) / thresholds + the keypoint-free fallback
   (``MemoryConfig.fallback_yaws``; its thresholds tuned on the tuning split by :func:`tune_fallback`
   with the keypoint thresholds fixed; off in the headline rows), and the 2D stage's recall@1/2/3 (the
   true map among the candidates: what verification can reach);
 - failure analysis of the test revisits at 200 maps (:func:`failure_analysis`): geometric and
-  keypoint overlap with the true map under the ground-truth transform, accepted vs missed; for each
+  keypoint overlap with the true map under the ground-truth transform, accepted vs missed; each
+  miss's acceptance score against the unseen rooms' scores (:func:`model_failure_analysis`); for each
   missed one the fallback's pose and colour agreement, and the colour agreement it would see from the
   ground-truth pose (:func:`pose_colour`), against the unseen rooms';
 - relocalisation error of accepted test revisits (rotation deg; translation of the relocalised first
@@ -190,8 +201,10 @@ def stack(visits: list[Visit]):
 _IDENTIFY = {}
 
 
-def identify_batch(bank, queries, cfg: memory.MemoryConfig, batch: int = 50, full: bool = False):
+def identify_batch(bank, queries, cfg: memory.MemoryConfig, batch: int = 50, full: bool = False, query_ids=None):
     """Identify every query (a stacked entry) against the bank, ``batch`` at a time (jit + vmap).
+    Query ``i``'s RANSAC key is ``fold_in(PRNGKey(0), query_ids[i])`` (default ``i``): a query gets the same
+    key whichever subset it is identified in (the tuning split's fits see the evaluation's draws).
     Returns (map_id (Q,), transform (Q, 4, 4), seconds excluding compilation) and, when ``full``,
     the whole :class:`memory.Identification` (numpy, (Q, ...))."""
     if cfg not in _IDENTIFY:
@@ -199,7 +212,8 @@ def identify_batch(bank, queries, cfg: memory.MemoryConfig, batch: int = 50, ful
     fn = _IDENTIFY[cfg]
     Q = queries.kf_desc.shape[0]
     batch = min(batch, Q)
-    keys = jax.random.split(jax.random.PRNGKey(0), Q)
+    ids = np.arange(Q) if query_ids is None else np.asarray(query_ids)
+    keys = jax.vmap(jax.random.fold_in, in_axes=(None, 0))(jax.random.PRNGKey(0), jnp.asarray(ids, jnp.uint32))
     chunks = [(i, min(i + batch, Q)) for i in range(0, Q, batch)]
 
     def take(i, j):
@@ -320,13 +334,43 @@ def failure_analysis(maps, revisits, ids, truth, qs):
     return out
 
 
+def model_failure_analysis(maps, revisits, out, T, truth, qs, unseen_qs):
+    """Each test revisit the acceptance model misses (not accepted as its map with a right pose): its
+    model score (accepted when >= 0), its verified candidate and that candidate's pose error, against the
+    scores of the unseen test rooms (what a lower threshold would let in)."""
+    score, cand = np.asarray(out.acceptance), np.asarray(out.candidate)
+    ids = np.asarray(out.map_id)
+    posed = right_pose(maps, [revisits[q] for q in qs], ids[qs], T[qs], truth[qs])
+    rot, trans = pose_errors(maps, revisits, cand[qs], T[qs], truth[qs])
+    su = np.sort(score[unseen_qs])
+    print(f"\nacceptance model scores (accept >= 0): unseen test rooms median {np.median(su):.2f}, 95th pct "
+          f"{np.percentile(su, 95):.2f}, max {su[-1]:.2f}; right test revisits median "
+          f"{np.median(score[qs][posed]):.2f}, min {score[qs][posed].min() if posed.any() else float('nan'):.2f}")
+    feats = np.asarray(out.features)
+    names = memory.ACCEPTANCE_FEATURES
+    show = [names.index(k) for k in ("log_pose_inliers", "fitness", "colour_agreement", "screen_overlap")]
+    for i, q in enumerate(qs):
+        if posed[i]:
+            continue
+        pose = (f"pose {rot[i]:.0f} deg / {trans[i]:.2f} m off" if np.isfinite(rot[i]) else
+                ("no candidate" if cand[q] < 0 else f"candidate {cand[q]} (not the true map)"))
+        above = int(np.sum(su >= score[q]))
+        print(f"  #{q}: score {score[q]:.2f} ({above} of {len(su)} unseen rooms score as high), {pose}; "
+              + ", ".join(f"{names[k]} {feats[q, k]:.2f}" for k in show))
+    missed = [q for i, q in enumerate(qs) if not posed[i]]
+    right = np.isfinite(rot) & (np.nan_to_num(rot, nan=180.0) < POSE_TOLERANCE[0]) & (
+        np.nan_to_num(trans, nan=1e9) < POSE_TOLERANCE[1])
+    return {"model_missed": len(missed), "model_unseen_score_max": float(su[-1]),
+            "model_missed_right_pose": int(np.sum(right & ~posed))}
+
+
 THRESHOLDS = ("min_keypoint_inliers", "min_inliers", "min_fitness", "max_rmse", "min_colour_agreement")
 GRID = ((4, 5, 6, 7, 8), (0, 25, 50, 75, 100), (0.0, 0.1, 0.2, 0.3, 0.4), (0.65, 0.7, 0.75, 0.8, 0.9),
         (0.5, 0.6, 0.7, 0.75, 0.8))
 OPEN = dict(min_keypoint_inliers=0, min_inliers=0, min_fitness=0.0, max_rmse=float("inf"), min_colour_agreement=0.0)
 
 
-def tune_thresholds(bank, queries, truth, unseen, cfg: memory.MemoryConfig, pose_ok=None):
+def tune_thresholds(bank, queries, truth, unseen, cfg: memory.MemoryConfig, pose_ok=None, query_ids=None):
     """Verification thresholds from the tuning split only: identify every query with all
     thresholds open, then over ``GRID`` keep the settings with no false accept on the unseen
     queries and an accuracy within 1 point of the best; each threshold is the median of those
@@ -336,7 +380,7 @@ def tune_thresholds(bank, queries, truth, unseen, cfg: memory.MemoryConfig, pose
     corrupt the map on update). Returns (thresholds dict, tuning accuracy, false accepts)."""
     import itertools
 
-    out = identify_batch(bank, queries, dataclasses.replace(cfg, **OPEN), full=True)[3]
+    out = identify_batch(bank, queries, dataclasses.replace(cfg, **OPEN, **NO_MODEL), full=True, query_ids=query_ids)[3]
     v = out.verification
     vs = np.asarray(bank.voxel_size)[np.maximum(np.asarray(out.map_id), 0)]
     base, pick = np.asarray(v.accepted), np.asarray(out.map_id)  # the remaining checks (scale, finite)
@@ -361,22 +405,98 @@ def tune_thresholds(bank, queries, truth, unseen, cfg: memory.MemoryConfig, pose
     return th, *score(tuple(th[k] for k in THRESHOLDS))
 
 
+NO_MODEL = dict(accept_weights=(), accept_mean=(), accept_scale=(), accept_bias=0.0)  # the thresholds decide
+MAX_TUNING_FALSE_ACCEPT = 0.005  # the acceptance model's operating point: at most this share of tuning unseen rooms
+ACCEPT_C = 0.1  # inverse L2 strength of the logistic regression (standardised features)
+# the features the model uses (the others get weight 0): chosen by 5-fold cross-validation on the tuning split
+# (3 repeats) among all 15, C in {0.03, 0.1, 1} and threshold rules: the recall margin, 3D similarity, ICP inlier
+# count and both scale features did not help (held-out tuning false accepts 0.7 % with them, 0 % without)
+ACCEPT_USED = ("vote_share", "log_matches", "log_triangle_inliers", "log_upright_inliers", "log_pose_inliers",
+               "inlier_margin", "screen_overlap", "fitness", "rmse_voxels", "colour_agreement")
+
+
+def acceptance_scores(cfg: memory.MemoryConfig, features):
+    """The acceptance model's score (Q,) of features (Q, F) in NumPy (float64): the same dot product as
+    :func:`cm3d.memory.acceptance_score` inside the jitted ``identify``."""
+    w, mu, sd = (np.asarray(getattr(cfg, k), np.float64) for k in ("accept_weights", "accept_mean", "accept_scale"))
+    return (np.asarray(features, np.float64) - mu) / sd @ w + cfg.accept_bias
+
+
+def fit_acceptance(bank, queries, truth, unseen, cfg: memory.MemoryConfig, pose_ok, query_ids=None):
+    """The acceptance model from the tuning split only: ``identify`` (thresholds irrelevant) gives every
+    query's verified candidate and its :data:`cm3d.memory.ACCEPTANCE_FEATURES`; a scikit-learn logistic
+    regression on the standardised features ``ACCEPT_USED`` (``ACCEPT_C``; the other features get weight 0)
+    learns "right map with a right pose" (``pose_ok``) against everything else (unseen rooms, wrong maps,
+    wrong poses); the operating threshold sits halfway between the highest score it must reject (every
+    wrong candidate that passes the hard checks, but ``MAX_TUNING_FALSE_ACCEPT`` of the unseen rooms) and
+    the next right revisit's score, and is folded into the bias.
+    Returns (MemoryConfig fields dict, tuning accuracy, tuning false accepts), or (None, ...) when the
+    split lacks one of the two classes (``--quick``). The features do not depend on the thresholds: the
+    identification is the one :func:`tune_thresholds` makes (same config: one compilation)."""
+    from sklearn.linear_model import LogisticRegression
+    from sklearn.preprocessing import StandardScaler
+
+    out = identify_batch(bank, queries, dataclasses.replace(cfg, **OPEN, **NO_MODEL), full=True,
+                         query_ids=query_ids)[3]
+    cand, F = np.asarray(out.candidate), np.asarray(out.features, np.float64)
+    v = out.verification
+    y = (cand == truth) & pose_ok(cand, np.asarray(v.transform))
+    scale = np.asarray(v.scale)
+    has = cand >= 0
+    hard = has & (scale >= cfg.scale_range[0]) & (scale <= cfg.scale_range[1]) & np.all(
+        np.isfinite(np.asarray(v.transform)), (1, 2))
+    if len(set(y[has])) < 2:
+        return None, float("nan"), float("nan")
+    used = [memory.ACCEPTANCE_FEATURES.index(k) for k in ACCEPT_USED]
+    sc = StandardScaler().fit(F[has][:, used])
+    lr = LogisticRegression(C=ACCEPT_C, max_iter=10_000).fit(sc.transform(F[has][:, used]), y[has])
+    z = np.where(has, sc.transform(F[:, used]) @ lr.coef_[0] + lr.intercept_[0], -np.inf)
+    k = int(np.floor(MAX_TUNING_FALSE_ACCEPT * np.sum(unseen)))
+    wrong_rev = np.sort(z[hard & ~y & ~unseen])[::-1]
+    neg_uns = np.sort(z[hard & unseen])[::-1]
+    lo = max(wrong_rev[0] if len(wrong_rev) else -np.inf, neg_uns[k] if k < len(neg_uns) else -np.inf)
+    pos = np.sort(z[y & (z > lo)])
+    if not len(pos):
+        thr = lo + 1.0
+    elif not np.isfinite(lo):
+        thr = pos[0] - 1.0
+    else:
+        thr = 0.5 * (lo + pos[0])
+    nf = len(memory.ACCEPTANCE_FEATURES)
+    w, mu, sd = np.zeros(nf), np.zeros(nf), np.ones(nf)
+    w[used], mu[used], sd[used] = lr.coef_[0], sc.mean_, sc.scale_
+    fields = dict(accept_weights=tuple(round(float(x), 5) for x in w),
+                  accept_mean=tuple(round(float(x), 5) for x in mu),
+                  accept_scale=tuple(round(float(x), 5) for x in sd),
+                  accept_bias=round(float(lr.intercept_[0] - thr), 5))
+    ok = hard & (acceptance_scores(dataclasses.replace(cfg, **fields), F) >= 0)
+    rev = ~unseen
+    return fields, float(np.mean((ok & y)[rev])), float(np.mean(ok[unseen]))
+
+
+def config_snippet(fields) -> str:
+    """The fitted model as MemoryConfig defaults (to paste into cm3d/memory.py)."""
+    fmt = lambda v: "(" + ", ".join(f"{x:g}" for x in v) + ")"  # noqa: E731
+    return "\n".join(f"    {k}: {'tuple[float, ...]' if isinstance(v, tuple) else 'float'} = "
+                     f"{fmt(v) if isinstance(v, tuple) else f'{v:g}'}" for k, v in fields.items())
+
+
 FALLBACK_YAWS = 4  # the keypoint-free fallback's yaw hypotheses (a box room's 4 orientations)
 FALLBACK_THRESHOLDS = ("fallback_min_fitness", "fallback_max_rmse", "fallback_min_colour")
 FALLBACK_GRID = ((0.2, 0.4, 0.6, 0.8, 0.9), (0.5, 0.55, 0.6, 0.65, 0.7), (0.4, 0.5, 0.6, 0.7, 0.8))
 FALLBACK_OPEN = dict(fallback_min_fitness=0.0, fallback_max_rmse=float("inf"), fallback_min_colour=0.0)
 
 
-def tune_fallback(bank, queries, truth, unseen, cfg: memory.MemoryConfig, pose_ok):
+def tune_fallback(bank, queries, truth, unseen, cfg: memory.MemoryConfig, pose_ok, query_ids=None):
     """The fallback's thresholds from the tuning split only, the keypoint path's (``cfg``) fixed: as
     :func:`tune_thresholds`, over ``FALLBACK_GRID``, keeping the settings where the fallback accepts no
     unseen room and no revisit with a wrong pose; the median over those within 1 point of the best.
     Returns (thresholds dict, tuning accuracy with right poses, false accepts)."""
     import itertools
 
-    kp_ids, kp_T, _ = identify_batch(bank, queries, cfg)
+    kp_ids, kp_T, _ = identify_batch(bank, queries, cfg, query_ids=query_ids)
     out = identify_batch(bank, queries, dataclasses.replace(cfg, fallback_yaws=FALLBACK_YAWS, **FALLBACK_OPEN),
-                         full=True)[3]
+                         full=True, query_ids=query_ids)[3]
     fb = out.fallback
     vs = np.asarray(bank.voxel_size)[np.maximum(np.asarray(out.map_id), 0)]
     kp_ok, fb_ok = kp_ids >= 0, ~(kp_ids >= 0) & (np.asarray(out.map_id) >= 0)
@@ -423,7 +543,9 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--no-cache", action="store_true")
-    ap.add_argument("--no-tune", action="store_true", help="use the MemoryConfig default thresholds")
+    ap.add_argument("--no-tune", action="store_true", help="use the MemoryConfig defaults (thresholds and model)")
+    ap.add_argument("--fit-acceptance", action="store_true",
+                    help="only fit the acceptance model on the tuning split and print it as MemoryConfig defaults")
     args = ap.parse_args(argv)
     quick = args.quick
     n_maps, n_unseen = (3, 2) if quick else (200, 200)
@@ -450,15 +572,44 @@ def main(argv=None):
     is_unseen = truth < 0
     test = np.concatenate([np.arange(n_maps) % 2 == 1, np.arange(n_unseen) % 2 == 1])  # odd: test, even: tuning
     figures, rows = {}, []
+    queries = revisits + unseen  # (unseen ones never have truth >= 0, so never a pose)
+    big = dataclasses.replace(CFG, max_maps=n_maps)
+    tq = np.flatnonzero(~test)
+    tuning_q = jax.tree.map(lambda a: a[~test], allq)
+    pose_ok = lambda ids, T: right_pose(maps, [queries[q] for q in tq], ids, T, truth[tq])  # noqa: E731
+
+    def fit(cfg_base):
+        fields, acc_m, fa_m = fit_acceptance(build_bank(maps, big), tuning_q, truth[~test], is_unseen[~test],
+                                             cfg_base, pose_ok, query_ids=tq)
+        if fields is None:
+            print("\nacceptance model: not fitted (the tuning split lacks right or wrong candidates); defaults kept")
+            return {}
+        print(f"\nacceptance model fitted on the tuning split (logistic regression, C={ACCEPT_C:g}, standardised "
+              f"features {', '.join(ACCEPT_USED)}; threshold above every tuning wrong candidate and all but "
+              f"{100 * MAX_TUNING_FALSE_ACCEPT:g}% of the unseen rooms): tuning accuracy "
+              f"(right poses) {100 * acc_m:.1f}%, false accepts {100 * fa_m:.1f}%")
+        print(f"{'feature':>22} {'mean':>9} {'scale':>9} {'weight':>8}")
+        for k, mu, sd, w in zip(memory.ACCEPTANCE_FEATURES, fields["accept_mean"], fields["accept_scale"],
+                                fields["accept_weights"]):
+            print(f"{k:>22} {mu:>9.4f} {sd:>9.4f} {w:>8.3f}")
+        print(f"{'bias (threshold folded in)':>22} {fields['accept_bias']:>9.4f}")
+        figures["tuning_accuracy_model"], figures["tuning_false_accept_model"] = acc_m, fa_m
+        figures.update({"accept_bias": fields["accept_bias"]})
+        figures.update({f"accept_weight_{k}": w for k, w in zip(memory.ACCEPTANCE_FEATURES, fields["accept_weights"])})
+        return fields
+
+    if args.fit_acceptance:
+        fields = fit(big)
+        if fields:
+            print("\nMemoryConfig defaults (cm3d/memory.py):\n" + config_snippet(fields))
+        if args.json:
+            write_json(args.json, figures)
+        return figures
 
     cfg = CFG
     if not args.no_tune:
-        big = dataclasses.replace(CFG, max_maps=n_maps)
-        tq = np.flatnonzero(~test)
-        queries = revisits + unseen  # (unseen ones never have truth >= 0, so never a pose)
-        pose_ok = lambda ids, T: right_pose(maps, [queries[q] for q in tq], ids, T, truth[tq])  # noqa: E731
-        th, acc_t, fa_t = tune_thresholds(build_bank(maps, big), jax.tree.map(lambda a: a[~test], allq),
-                                          truth[~test], is_unseen[~test], big, pose_ok)
+        th, acc_t, fa_t = tune_thresholds(build_bank(maps, big), tuning_q, truth[~test], is_unseen[~test], big,
+                                          pose_ok, query_ids=tq)
         cfg = dataclasses.replace(CFG, **th)
         print(f"\nthresholds tuned on the tuning split ({int(np.sum(~test & ~is_unseen))} revisits, "
               f"{int(np.sum(~test & is_unseen))} unseen; {n_maps} maps): "
@@ -467,14 +618,16 @@ def main(argv=None):
         figures.update({f"tuned_{k}": v for k, v in th.items()})
         figures["tuning_accuracy"], figures["tuning_false_accept"] = acc_t, fa_t
         if not quick:
-            th_fb, acc_f, fa_f = tune_fallback(build_bank(maps, big), jax.tree.map(lambda a: a[~test], allq),
-                                               truth[~test], is_unseen[~test], dataclasses.replace(big, **th), pose_ok)
+            th_fb, acc_f, fa_f = tune_fallback(build_bank(maps, big), tuning_q, truth[~test], is_unseen[~test],
+                                               dataclasses.replace(big, **th, **NO_MODEL), pose_ok, query_ids=tq)
             cfg = dataclasses.replace(cfg, **th_fb)
             print(f"fallback thresholds tuned on the tuning split (keypoint thresholds above fixed): "
                   + ", ".join(f"{k}={v:g}" for k, v in th_fb.items()) + f"; tuning accuracy (right poses) "
                   f"{100 * acc_f:.1f}%, false accepts {100 * fa_f:.1f}%")
             figures.update({f"tuned_{k}": v for k, v in th_fb.items()})
             figures["tuning_accuracy_fallback"], figures["tuning_false_accept_fallback"] = acc_f, fa_f
+        cfg = dataclasses.replace(cfg, **fit(big))
+    model = bool(cfg.accept_weights)
     test_rev = np.flatnonzero(test & ~is_unseen)
     test_uns = np.flatnonzero(test & is_unseen)
 
@@ -483,12 +636,14 @@ def main(argv=None):
         cfg_n = dataclasses.replace(cfg, max_maps=n)
         if n == 1:
             singles = [q for q in test_rev if q < 100]
-            hits = 0
+            hits = posed = 0
             for s in singles:
                 bank = build_bank([maps[s]], cfg_n)
-                ids, _, _ = identify_batch(bank, jax.tree.map(lambda a: a[s: s + 1], rq), cfg_n, batch=1)
+                ids, T1, _ = identify_batch(bank, jax.tree.map(lambda a: a[s: s + 1], rq), cfg_n, batch=1,
+                                            query_ids=[s])
                 hits += int(ids[0] == 0)
-            acc = hits / len(singles)
+                posed += int(right_pose([maps[s]], [revisits[s]], ids, T1, np.zeros(1, int))[0])
+            acc_map, acc = hits / len(singles), posed / len(singles)
             bank = build_bank([maps[singles[0]]], cfg_n)
             ids, _, dt = identify_batch(bank, allq, cfg_n)
             fa = float(np.mean(ids[test_uns] >= 0))
@@ -496,17 +651,19 @@ def main(argv=None):
             bank = build_bank(maps[:n], cfg_n)
             ids, T, dt, out = identify_batch(bank, allq, cfg_n, full=True)
             mine = test_rev[test_rev < n]
-            acc = float(np.mean(ids[mine] == truth[mine]))
+            acc_map = float(np.mean(ids[mine] == truth[mine]))
+            acc = float(np.mean(right_pose(maps, [revisits[q] for q in mine], ids[mine], T[mine], truth[mine])))
             fa = float(np.mean(ids[test_uns] >= 0))
             full = {"bank": bank, "ids": ids, "T": T, "cfg": cfg_n, "n": n, "out": out}
         qps = Q / dt
-        figures[f"accuracy_{n}"], figures[f"qps_{n}"] = acc, qps
-        rows.append((n, acc, fa, qps))
-    print("\nrecall, test split (accuracy: test revisits accepted as the right map; false accepts: test unseen "
-          "rooms accepted; q/s over all queries)")
-    print(f"{'maps':>6} {'accuracy':>9} {'false acc.':>10} {'queries/s':>10}")
-    for n, acc, fa, qps in rows:
-        print(f"{n:>6} {100 * acc:>8.1f}% {100 * fa:>9.1f}% {qps:>10.1f}")
+        figures[f"accuracy_{n}"], figures[f"accuracy_{n}_map"], figures[f"qps_{n}"] = acc, acc_map, qps
+        rows.append((n, acc, acc_map, fa, qps))
+    print(f"\nrecall, test split, {'acceptance model' if model else 'AND of thresholds'} (accuracy: test revisits "
+          "accepted as the right map with a right pose; map only: right map whatever the pose; false accepts: test "
+          "unseen rooms accepted; q/s over all queries)")
+    print(f"{'maps':>6} {'accuracy':>9} {'map only':>9} {'false acc.':>10} {'queries/s':>10}")
+    for n, acc, acc_map, fa, qps in rows:
+        print(f"{n:>6} {100 * acc:>8.1f}% {100 * acc_map:>8.1f}% {100 * fa:>9.1f}% {qps:>10.1f}")
 
     n, bank, ids, T = full["n"], full["bank"], full["ids"], full["T"]
     mine = test_rev[test_rev < n]
@@ -517,33 +674,42 @@ def main(argv=None):
         figures[f"recall_at_{k}"] = float(np.mean(np.any(cand[mine, :k] == truth[mine, None], 1)))
     print(f"\nablation at {n} maps (test split); the 2D stage's recall@k (true map among the first k "
           "candidates): " + ", ".join(f"@{k} {100 * figures[f'recall_at_{k}']:.1f}%" for k in range(1, k_max + 1)))
-    print(f"{'verification':>34} {'accuracy':>9} {'false acc.':>10} {'queries/s':>10}")
+    print(f"{'verification':>42} {'accuracy':>9} {'map only':>9} {'false acc.':>10} {'queries/s':>10}")
     modes = [("none", "2D only", dict(verification="none")),
              ("keypoints", "2D+3D keypoints (no ICP)", dict(verification="keypoints")),
-             ("no_upright", "2D+3D+ICP, no upright pairs", dict(upright_hypotheses=0)),
-             ("full", "2D+3D+ICP + upright pairs (all)", {}),
-             ("fallback", "all + keypoint-free fallback", dict(fallback_yaws=FALLBACK_YAWS))]
-    for mode, name, change in (modes[-2:-1] if quick else modes):
-        if mode == "full":
-            ids_m, dt = ids, Q / figures[f"qps_{n}"]
-        else:
+             ("no_upright", "2D+3D+ICP, no upright pairs, thresholds", dict(upright_hypotheses=0, **NO_MODEL)),
+             ("thresholds", "2D+3D+ICP + upright, AND of thresholds", NO_MODEL),
+             ("full", "all + acceptance model" if model else "all (AND of thresholds)", {}),
+             ("fallback", "thresholds + keypoint-free fallback", dict(fallback_yaws=FALLBACK_YAWS, **NO_MODEL))]
+    if not model:
+        modes = [m for m in modes if m[0] != "thresholds"]
+    qps_ref = {}
+    for mode, name, change in ([m for m in modes if m[0] == "full"] if quick else modes):
+        if mode == "full" and quick:
+            ids_m, T_m, dt = ids, T, Q / figures[f"qps_{n}"]
+        else:  # (full: timed again here, next to the thresholds row: the q/s ratio compares like with like)
             ids_m, T_m, dt = identify_batch(bank, allq, dataclasses.replace(full["cfg"], **change))
-        acc, fa = float(np.mean(ids_m[mine] == truth[mine])), float(np.mean(ids_m[test_uns] >= 0))
-        print(f"{name:>34} {100 * acc:>8.1f}% {100 * fa:>9.1f}% {Q / dt:>10.1f}")
+        posed_m = right_pose(maps, [revisits[q] for q in mine], ids_m[mine], T_m[mine], truth[mine])
+        acc, fa = float(np.mean(posed_m)), float(np.mean(ids_m[test_uns] >= 0))
+        acc_map = float(np.mean(ids_m[mine] == truth[mine]))
+        print(f"{name:>42} {100 * acc:>8.1f}% {100 * acc_map:>8.1f}% {100 * fa:>9.1f}% {Q / dt:>10.1f}")
         figures[f"ablation_{mode}_accuracy"], figures[f"ablation_{mode}_false_accept"] = acc, fa
-        figures[f"ablation_{mode}_qps"] = Q / dt
+        figures[f"ablation_{mode}_accuracy_map"] = acc_map
+        figures[f"ablation_{mode}_qps"] = qps_ref[mode] = Q / dt
         if mode == "fallback":
-            ok_fb = right_pose(maps, [revisits[q] for q in mine], ids_m[mine], T_m[mine], truth[mine])
-            figures["ablation_fallback_right_pose"] = float(np.mean(ok_fb))
             rescued = [int(q) for q in mine if ids_m[q] == truth[q] and ids[q] != truth[q]]
-            print(f"{'':>34} (right poses {100 * np.mean(ok_fb):.1f}%; test revisits only the fallback accepts: "
-                  f"{rescued or 'none'}; q/s ratio to the row above {(Q / dt) / figures[f'qps_{n}']:.2f})")
-            figures["fallback_qps_ratio"] = (Q / dt) / figures[f"qps_{n}"]
-    print("(no upright pairs: the keypoint stage without its 2-point upright hypotheses and colour screening, "
-          "same thresholds)")
+            print(f"{'':>42} (test revisits only the fallback accepts: {rescued or 'none'}; q/s ratio to the "
+                  f"thresholds row {qps_ref[mode] / qps_ref.get('thresholds', qps_ref['full']):.2f})")
+            figures["fallback_qps_ratio"] = qps_ref[mode] / qps_ref.get("thresholds", qps_ref["full"])
+    if "thresholds" in qps_ref:
+        figures["model_qps_ratio"] = qps_ref["full"] / qps_ref["thresholds"]
+        print(f"(q/s of the acceptance model / the thresholds, same process: {figures['model_qps_ratio']:.2f}; "
+              "accuracy counts right poses only, map only any pose)")
     if not quick:
         figures.update(failure_analysis(maps, revisits, ids, truth, mine))
-        cfg_fb = dataclasses.replace(full["cfg"], fallback_yaws=FALLBACK_YAWS, **FALLBACK_OPEN)
+        if model:
+            figures.update(model_failure_analysis(maps, revisits, full["out"], T, truth, mine, test_uns))
+        cfg_fb = dataclasses.replace(full["cfg"], fallback_yaws=FALLBACK_YAWS, **FALLBACK_OPEN, **NO_MODEL)
         _, _, _, out_fb = identify_batch(bank, allq, cfg_fb, full=True)
         agree_u = np.asarray(out_fb.fallback.colour_agreement)[test_uns]
         missed = [int(q) for q in mine if ids[q] != truth[q]]

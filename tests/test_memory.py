@@ -450,9 +450,7 @@ def test_entry_keypoints_are_padded_and_never_nan():
 
 VISIT_CFG = memory.MemoryConfig(max_maps=4, max_points=1024, max_keyframes=8, max_keypoints=256,
                                 voxel_resolution=40.0, top_k=2, fallback_yaws=4)
-
-
-VISIT_FRAMES = 16  # every visit is padded to this many frames (extra frames invalid): one compilation
+VISIT_FRAMES = 16  # every visit (stored or query) has this many frames: one render and one preparation compile
 
 
 @jax.jit
@@ -461,24 +459,22 @@ def _prepare_visit(depth, conf, K, c2w, images, static, frame_ok, uv, kdesc, kva
     d = jax.vmap(descriptors.image_descriptor)(images, static)
     idx, ok = memory.select_keyframes(d, frame_ok, 0.1, cfg.max_keyframes)
     cloud = memory.sequence_cloud(depth, conf, K, c2w, images, static, cfg)
-    kp = memory.lift_keypoints(uv, kdesc, kvalid, depth, K, c2w, 256)
+    kp = memory.lift_keypoints(uv, kdesc, kvalid, depth, K, c2w, cfg.max_keypoints)
     return memory.build_entry(cloud, d[idx], ok, cfg, kp)
 
 
-def _visit_entry(seed, visit, frames):
+def _visit_entry(seed, visit):
     from cm3d.data import synthetic
     from cm3d.ops import keypoints
 
     world = synthetic.WorldConfig(height=120, width=160, supersample=1, fps=1.0)
-    seq = synthetic.generate(seed, visit, frames, "slight", world)
+    seq = synthetic.generate(seed, visit, VISIT_FRAMES, "slight", world)
     static = ~seq.gt.dynamic_mask
     f = keypoints.detect_sequence(seq.images, static, 48, contrast_threshold=0.01)
-    pad = lambda a: np.concatenate([a, np.repeat(a[:1], VISIT_FRAMES - frames, 0)])  # noqa: E731
-    ok = np.arange(VISIT_FRAMES) < frames
-    f32 = lambda a: jnp.asarray(pad(a), jnp.float32)  # noqa: E731
+    f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
     entry = _prepare_visit(f32(seq.depth), f32(seq.depth_conf), f32(seq.intrinsic), f32(seq.cam_to_world),
-                           jnp.asarray(pad(seq.images)), jnp.asarray(pad(static) & ok[:, None, None]), jnp.asarray(ok),
-                           f32(f.uv), f32(f.desc), jnp.asarray(pad(f.valid) & ok[:, None]))
+                           jnp.asarray(seq.images), jnp.asarray(static), jnp.ones(VISIT_FRAMES, bool),
+                           f32(f.uv), f32(f.desc), jnp.asarray(f.valid))
     s = seq.meta["prior_scale"]
     prior_from_world = np.diag([s, s, s, 1.0]) @ np.linalg.inv(seq.gt.cam_to_world[0])
     return entry, prior_from_world
@@ -486,30 +482,32 @@ def _visit_entry(seed, visit, frames):
 
 @pytest.fixture(scope="module")
 def visits():
-    """Two stored rooms (look-around visits), a revisit of room 1 and a room never stored."""
-    maps = [_visit_entry(s, 0, VISIT_FRAMES) for s in (1, 2)]
-    revisit = _visit_entry(2, 1, 10)
-    unseen = _visit_entry(10_001, 1, 10)
+    """Two stored rooms (look-around visits), a revisit of room 1 and a room never stored, and
+    :func:`memory.remember` of the last two, jitted and vmapped as a batch (one compilation shared by
+    the tests below)."""
+    maps = [_visit_entry(s, 0) for s in (1, 2)]
+    revisit = _visit_entry(2, 1)
+    unseen = _visit_entry(10_001, 1)
     bank = memory.empty(VISIT_CFG)
     for e, _ in maps:
         bank, _ = _insert(bank, e)
-    return bank, maps, revisit, unseen
+    queries = jax.tree.map(lambda a, b: jnp.stack([a, b]), revisit[0], unseen[0])
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    banks, rep = jax.jit(jax.vmap(lambda e, k: memory.remember(bank, e, VISIT_CFG, k)))(queries, keys)
+    return bank, maps, revisit, unseen, banks, rep
 
 
 def test_revisit_is_recalled_verified_and_relocalised_and_new_room_rejected(visits):
-    """remember (recall, verification, update or insert), jitted and vmapped over a batch of two
-    queries: the revisit updates map 1 with a correct Sim(3), the new room becomes map 2. The
-    keypoint-free fallback runs too: from the clouds alone it finds the revisit's Sim(3) (reference:
-    the ground truth) and its strict thresholds refuse the new room."""
-    bank, maps, (rev, rev_pfw), (new, _) = visits
-    queries = jax.tree.map(lambda a, b: jnp.stack([a, b]), rev, new)
-    keys = jax.random.split(jax.random.PRNGKey(0), 2)
-    banks, rep = jax.jit(jax.vmap(lambda e, k: memory.remember(bank, e, VISIT_CFG, k)))(queries, keys)
+    """remember (recall, verification by the acceptance model, update or insert), jitted and vmapped
+    over a batch of two queries: the revisit updates map 1 with a correct Sim(3), the new room becomes
+    map 2. The keypoint-free fallback runs too: from the clouds alone it finds the revisit's Sim(3)
+    (reference: the ground truth) and its strict thresholds refuse the new room."""
+    bank, maps, (rev, rev_pfw), (new, _), banks, rep = visits
     out = rep.identification
     assert list(np.asarray(out.map_id)) == [1, -1]
     v = jax.tree.map(lambda a: a[0], out.verification)
+    assert float(out.acceptance[0]) >= 0 > float(out.acceptance[1])
     assert int(v.keypoint_inliers) >= VISIT_CFG.min_keypoint_inliers and float(v.fitness) >= VISIT_CFG.min_fitness
-    assert float(v.colour_agreement) >= VISIT_CFG.min_colour_agreement
     gt = maps[1][1] @ np.linalg.inv(rev_pfw)  # query prior frame -> map prior frame
     T = np.asarray(v.transform)
     s, s_gt = np.cbrt(np.linalg.det(T[:3, :3])), np.cbrt(np.linalg.det(gt[:3, :3]))
@@ -537,3 +535,43 @@ def test_revisit_is_recalled_verified_and_relocalised_and_new_room_rejected(visi
     np.testing.assert_array_equal(np.asarray(b1.points[1]), np.asarray(bank.points[1]))
     np.testing.assert_allclose(np.asarray(b1.points[2]), np.asarray(_insert(bank, new)[0].points[2]),
                                atol=1e-6)
+
+
+def test_acceptance_model_in_identify_equals_sklearn_on_its_features(visits):
+    """The score identify computes (jitted, vmapped) is scikit-learn's logistic-regression decision function
+    on the same features (a StandardScaler + LogisticRegression holding the config's numbers), shifted by the
+    folded-in threshold, and float64 NumPy agrees; the features are the verification's own scores; the
+    decision is score >= 0 (and the hard checks), not the thresholds."""
+    from sklearn.linear_model import LogisticRegression
+    from sklearn.preprocessing import StandardScaler
+
+    bank, maps, _, _, _, rep = visits
+    out = rep.identification
+    F = np.asarray(out.features, np.float64)
+    cfg = VISIT_CFG
+    sc = StandardScaler()
+    sc.mean_, sc.scale_ = np.asarray(cfg.accept_mean), np.asarray(cfg.accept_scale)
+    sc.var_, sc.n_features_in_ = sc.scale_**2, F.shape[1]
+    lr = LogisticRegression()
+    lr.coef_, lr.intercept_ = np.asarray(cfg.accept_weights)[None], np.array([cfg.accept_bias])
+    lr.classes_ = np.array([False, True])
+    ref = lr.decision_function(sc.transform(F))
+    np.testing.assert_allclose(np.asarray(out.acceptance), ref, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(
+        ref, (F - np.asarray(cfg.accept_mean)) / np.asarray(cfg.accept_scale) @ np.asarray(cfg.accept_weights)
+        + cfg.accept_bias, atol=1e-9)
+    # the features are the verification's scores (the revisit's: the keypoint path accepted it)
+    names = memory.ACCEPTANCE_FEATURES
+    v = jax.tree.map(lambda a: np.asarray(a)[0], out.verification)
+    vs = float(bank.voxel_size[int(out.candidate[0])])
+    np.testing.assert_allclose(F[0, names.index("fitness")], v.fitness, rtol=1e-6)
+    np.testing.assert_allclose(F[0, names.index("colour_agreement")], v.colour_agreement, rtol=1e-6)
+    np.testing.assert_allclose(F[0, names.index("rmse_voxels")], v.inlier_rmse / vs, rtol=1e-5)
+    np.testing.assert_allclose(F[0, names.index("log_icp_inliers")], np.log1p(v.inlier_count), rtol=1e-6)
+    np.testing.assert_allclose(F[0, names.index("log_pose_inliers")], np.log1p(v.keypoint_inliers), rtol=1e-6)
+    share = float(out.recall.votes[0, 1]) / int(np.sum(np.asarray(visits[2][0].kf_valid)))
+    np.testing.assert_allclose(F[0, names.index("vote_share")], share, rtol=1e-6)
+    assert int(out.candidate[0]) == 1 and list(np.asarray(out.map_id)) == [1, -1]
+    assert list(np.asarray(out.map_id) >= 0) == list(np.asarray(out.acceptance) >= 0)
+    with pytest.raises(ValueError, match="accept_weights"):
+        memory.MemoryConfig(accept_weights=(1.0, 2.0))
