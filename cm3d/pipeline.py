@@ -15,12 +15,13 @@ arrays) -> ``step`` (jit, ``lax.scan`` over frames) -> :func:`collect` (host: pe
    keyframe descriptors and 3D keypoints, posed by those refined poses and merged with what the
    sequence stored so far, against the bank's *other* maps (:func:`cm3d.memory.identify`); the
    **factor graph with memory** from the memory-free optimum (landmarks within
-   ``τ = max(τ_min, d_scene · α)`` of the recalled map's surface, or of the sequence's own stored map,
-   get a point-to-plane prior whose std is the larger of the configured one and the landmarks'
-   measured spread about the surface; projection covariance scaled by ``α_mem``), kept only when it
-   agrees with the window's own observations (a χ² test: memory never makes a window worse than
-   the window alone can tell); **update** the bank with the final window (merge into the recalled
-   map or the sequence's own, or store a new one).
+   ``τ = max(τ_min, d_scene · α)`` of the recalled map's surface (an earlier sequence's map; the
+   sequence's own stored map only with ``own_map_landmarks``) get a point-to-plane prior whose std
+   is the larger of the configured one and the landmarks' measured spread about the surface;
+   projection covariance scaled by ``α_mem``), kept only when it agrees with the window's own
+   observations (a χ² test: memory never makes a window worse than the window alone can tell);
+   **update** the bank with the final window (merge into the recalled map or the sequence's own,
+   or store a new one; stray voxels dropped: ``map_min_support``).
 
 Windows: window ``k`` holds ``keyframe_interval + 1`` pose slots; slot 0 is the *anchor*, the last
 frame of the previous window with its refined pose (held by the graph's tight prior on pose 0),
@@ -94,11 +95,18 @@ class PipelineConfig:
     graph (:class:`TrackCheckConfig`); memory: bank
     capacities and recall thresholds (used for a new bank; a loaded bank brings its own);
     use_memory: recall / verify / update at all; own_map_landmarks: until a stored map is recalled, a
-    window's memory landmarks come from the map its own sequence stored (:func:`window_end`);
+    window's memory landmarks come from the map its own sequence stored (:func:`window_end`). Off by
+    default: that map is built from the same kind of prior depth as the window, so the window's χ²
+    test cannot tell whether it helps, and measured at 384x512 it moved revisits either way (camera
+    pose, scenes 1 / 2: ATE 0.00226 -> 0.00272 / 0.00229 -> 0.00223; first visits 1-4 % lower);
+    without it a sequence that recalls nothing keeps exactly its memory-free poses;
     min_memory_landmarks: fewest landmarks on the remembered surface for the memory solution to be
     used (a handful hardly constrains six degrees of freedom per frame, and their spread is no
     measurement); memory_sigma_voxels: the point-to-plane priors' std is at least this many map
-    voxels (:func:`memory_refinement`);
+    voxels (:func:`memory_refinement`); map_min_support: a window stored or merged into the bank
+    drops its voxels with fewer samples than this share of the median voxel's
+    (:func:`cm3d.memory.build_entry`: stray points weigh as much as surface in a capacity-bound map;
+    the query that identifies keeps them);
     keyframe_threshold: descriptor distance between
     memory keyframes; feature_capacity: 3D keypoints per frame offered to the memory;
     flow / keypoints: host-side OpenCV front end; seed: the RANSAC key.
@@ -121,7 +129,8 @@ class PipelineConfig:
     memory: memory.MemoryConfig = memory.MemoryConfig(max_maps=16, max_points=4096, max_keyframes=16)
     track_check: TrackCheckConfig = TrackCheckConfig()
     use_memory: bool = True
-    own_map_landmarks: bool = True
+    own_map_landmarks: bool = False
+    map_min_support: float = 0.2
     min_memory_landmarks: int = 12
     memory_sigma_voxels: float = 0.5
     keyframe_threshold: float = 0.25
@@ -139,6 +148,8 @@ class PipelineConfig:
             raise ValueError("PipelineConfig.feature_capacity: must be >= 1")
         if self.min_memory_landmarks < 1:
             raise ValueError(f"PipelineConfig.min_memory_landmarks: must be >= 1, got {self.min_memory_landmarks}")
+        if not 0 <= self.map_min_support < 1:
+            raise ValueError(f"PipelineConfig.map_min_support: must be in [0, 1), got {self.map_min_support}")
         if not self.memory_sigma_voxels >= 0:
             raise ValueError(f"PipelineConfig.memory_sigma_voxels: must be >= 0, got {self.memory_sigma_voxels}")
 
@@ -408,7 +419,10 @@ class RecallReport:
     """One window's memory decision (zeros when memory is off): candidates (top_k,) map ids
     (-1 none), votes (top_k,) and scores (top_k,) of the candidates, keypoint inliers (top_k,),
     accepted, recalled map id (-1 none), inlier_count and inlier_rmse of the verification,
-    fitness, scale, transform (4, 4) query -> map (Sim(3)), map_id written (-1 bank full), created."""
+    fitness, scale, transform (4, 4) query -> map (Sim(3)), map_id written (-1 bank full), created, and
+    placement (4, 4): the Sim(3) sequence -> map the window actually used for its memory priors and its
+    merge (the recalled map's placement after the re-fit to the landmarks; identity for the sequence's
+    own map or a new one). ``transform`` is the verification's estimate alone."""
 
     candidates: Any
     votes: Any
@@ -423,6 +437,7 @@ class RecallReport:
     transform: Any
     map_id: Any
     created: Any
+    placement: Any = None
 
 
 @struct.dataclass
@@ -526,9 +541,11 @@ def _sim3_inverse_apply(A, points):
     return (points - A[:3, 3]) @ Ainv.T
 
 
-def window_entry(win: Window, mem_cfg: memory.MemoryConfig, cfg: PipelineConfig) -> memory.MapEntry:
+def window_entry(win: Window, mem_cfg: memory.MemoryConfig, cfg: PipelineConfig,
+                 min_support: float = 0.0) -> memory.MapEntry:
     """The window as a memory entry (:func:`cm3d.memory.build_entry`): its static cloud, keyframe
-    descriptors and 3D keypoints, posed by ``win.poses``."""
+    descriptors and 3D keypoints, posed by ``win.poses``; ``min_support``: drop voxels with fewer
+    samples than this share of the median voxel's (the entry that goes into the bank)."""
     cloud_cfg = dataclasses.replace(mem_cfg, pixel_stride=max(1, mem_cfg.pixel_stride // cfg.stride))
     static = win.static & win.valid[:, None, None]
     cloud = memory.sequence_cloud(win.depth, win.conf, win.intrinsic, win.poses, win.image, static, cloud_cfg)
@@ -536,10 +553,10 @@ def window_entry(win: Window, mem_cfg: memory.MemoryConfig, cfg: PipelineConfig)
     fvalid = win.feat_valid & win.valid[:, None]
     kp = memory.lift_keypoints(win.feat_uv, win.feat_desc, fvalid, win.depth, win.intrinsic, win.poses,
                                mem_cfg.max_keypoints)
-    return memory.build_entry(cloud, win.desc[idx], kv, mem_cfg, keypoints=kp)
+    return memory.build_entry(cloud, win.desc[idx], kv, mem_cfg, keypoints=kp, min_support=min_support)
 
 
-def _recall_report(ident: memory.Identification, map_id, transform, created) -> RecallReport:
+def _recall_report(ident: memory.Identification, map_id, transform, created, placement=None) -> RecallReport:
     rc, ver = ident.recall, ident.verification
     cand = rc.candidates
     safe = jnp.maximum(cand, 0)
@@ -551,7 +568,8 @@ def _recall_report(ident: memory.Identification, map_id, transform, created) -> 
         inlier_count=ver.inlier_count.astype(jnp.int32), inlier_rmse=ver.inlier_rmse.astype(jnp.float32),
         fitness=ver.fitness.astype(jnp.float32), scale=ver.scale.astype(jnp.float32),
         transform=jnp.asarray(transform, jnp.float32), map_id=jnp.asarray(map_id, jnp.int32),
-        created=jnp.asarray(created, bool))
+        created=jnp.asarray(created, bool),
+        placement=jnp.asarray(transform if placement is None else placement, jnp.float32))
 
 
 def recall_verify_update(bank, key, win: Window, mem_cfg: memory.MemoryConfig, cfg: PipelineConfig):
@@ -590,7 +608,8 @@ def _empty_report(top_k: int) -> RecallReport:
                         accepted=jnp.zeros((), bool), recalled=-jnp.ones((), jnp.int32),
                         inlier_count=jnp.zeros((), jnp.int32), inlier_rmse=jnp.zeros(()), fitness=jnp.zeros(()),
                         scale=jnp.ones(()), transform=jnp.eye(4, dtype=jnp.float32),
-                        map_id=-jnp.ones((), jnp.int32), created=jnp.zeros((), bool))
+                        map_id=-jnp.ones((), jnp.int32), created=jnp.zeros((), bool),
+                        placement=jnp.eye(4, dtype=jnp.float32))
 
 
 def _frame_motion_residuals(r, uv, group, ok, num_groups: int, K, min_scale, rounds: int = 5):
@@ -879,12 +898,13 @@ def window_end(bank, key, recalled, recalled_T, win: Window, lm_: Landmarks, mem
     3. **factor graph with memory** (:func:`memory_refinement`) from the memory-free optimum, with the
        surface of the map this sequence recalled from an earlier sequence (``recalled`` with the
        Sim(3) ``recalled_T`` sequence -> map, which keeps its placement), or of the earlier map this
-       window verified (placed by the verification, re-fitted to the landmarks), else of the map the
-       sequence stored (``cfg.own_map_landmarks``: the previous windows' refined surface, in the
-       sequence's frame). Its poses replace the memory-free ones only when the memory-free
-       refinement passed the gate and the memory is *consistent* with the window's own observations
-       (the χ² test of :func:`memory_refinement`): the memory never makes a window worse than the
-       window alone can tell;
+       window verified (placed by the verification, re-fitted to the landmarks), else (only with
+       ``cfg.own_map_landmarks``, off by default) of the map the sequence stored (the previous
+       windows' refined surface, in the sequence's frame); none: the memory-free poses stay. Its
+       poses replace the memory-free ones only when the memory-free refinement passed the gate and
+       the memory is *consistent* with the window's own observations (the χ² test of
+       :func:`memory_refinement`): the memory never makes a window worse than the window alone can
+       tell;
     4. **update** the bank with the window posed by its final poses: merged into that map
        (:func:`cm3d.memory.update_map`), else into the map this sequence stored, else stored as a
        new map.
@@ -915,7 +935,7 @@ def window_end(bank, key, recalled, recalled_T, win: Window, lm_: Landmarks, mem
         used = (src >= 0) & ref.refined & ok
         poses = jnp.where(used, pm.astype(jnp.float32), poses)
         use_T = (use_T @ A.astype(jnp.float32)).astype(jnp.float32)
-        entry = window_entry(win.replace(poses=poses), mem_cfg, cfg)
+        entry = window_entry(win.replace(poses=poses), mem_cfg, cfg, cfg.map_min_support)
         # else the sequence's own map, whose frame is the sequence's (identity: exact, no ICP noise)
         target = jnp.where(use_map >= 0, use_map, written).astype(jnp.int32)
         target_T = jnp.where(use_map >= 0, use_T, jnp.eye(4)).astype(jnp.float32)
@@ -929,7 +949,8 @@ def window_end(bank, key, recalled, recalled_T, win: Window, lm_: Landmarks, mem
         written = jnp.where(created, map_id, written).astype(jnp.int32)
         recalled = use_map
         recalled_T = use_T
-        report = _recall_report(ident, map_id, jnp.where(hit, ident.verification.transform, jnp.eye(4)), created)
+        report = _recall_report(ident, map_id, jnp.where(hit, ident.verification.transform, jnp.eye(4)), created,
+                                target_T)
     else:
         report = _empty_report(mem_cfg.top_k)
     res = WindowResult(poses=poses, index=win.index, valid=win.valid, refined=ref.refined,
@@ -1099,6 +1120,7 @@ def collect(outputs: StepOutputs, sequence, cfg: PipelineConfig = PipelineConfig
             "accepted": bool(r.accepted), "recalled_map": int(r.recalled),
             "inlier_count": int(r.inlier_count), "rmse": float(r.inlier_rmse), "fitness": float(r.fitness),
             "scale": float(r.scale), "transform": np.asarray(r.transform, np.float64).round(6).tolist(),
+            "placement": np.asarray(r.placement, np.float64).round(6).tolist(),
             "map_id": int(r.map_id), "created_map": bool(r.created),
             "refined": bool(w.refined), "gate_stat": float(w.gate_stat), "gate_threshold": float(w.gate_threshold),
             "landmarks": int(w.landmarks), "memory_landmarks": int(w.memory_landmarks),
