@@ -933,17 +933,13 @@ def _decide(bank, m, T, scale, matches, kp_inliers, icp, cfg: MemoryConfig) -> V
                         fitness=fitness, inlier_count=count.astype(jnp.int32), inlier_rmse=rmse, colour_agreement=agree)
 
 
-def _refine_and_decide(bank, m, entry: MapEntry, Ts, scales, matches, inliers, cfg: MemoryConfig) -> Verification:
+def _refine_and_decide(bank, m, entry: MapEntry, Ts, scales, matches, inliers, cfg: MemoryConfig):
     """Verify candidate ``m`` (-1: none) from its keypoint poses Ts (G, 4, 4) (:func:`_keypoint_stage`):
     with ICP (``cfg.verification == "full"``) the pose with the largest colour-consistent overlap
     (:func:`_screen_poses`; a wrong pose of a box room can fit its geometry well, but rarely its
-    colours) is refined by ICP, else the one with most keypoint inliers; then :func:`_decide`."""
-    return _refine_and_decide_screened(bank, m, entry, Ts, scales, matches, inliers, cfg)[0]
-
-
-def _refine_and_decide_screened(bank, m, entry: MapEntry, Ts, scales, matches, inliers, cfg: MemoryConfig):
-    """:func:`_refine_and_decide`, also returning the refined pose's screening overlap (a share of
-    ``cfg.screen_points``; 0 without ICP) and its RANSAC scale."""
+    colours) is refined by ICP, else the one with most keypoint inliers; then :func:`_decide`.
+    Returns (Verification, the chosen pose's screening overlap as a share of ``cfg.screen_points``
+    (0 without ICP), its RANSAC scale): the last two feed :func:`acceptance_features`."""
     mm = jnp.maximum(m, 0)
     if cfg.verification != "full":
         g = jnp.argmax(inliers)
@@ -1132,10 +1128,12 @@ def verify(bank: MemoryBank, map_id, entry: MapEntry, cfg: MemoryConfig, key) ->
        against the map's (:func:`icp_sim3`), accepted on absolute inlier count
        (``cfg.min_inliers``), fitness (``cfg.min_fitness``) and inlier RMSE (``cfg.max_rmse`` voxels).
     Geometry is what rejects look-alike scenes. ``cfg.verification == "none"`` accepts any stored map.
+    These thresholds decide here; :func:`identify` decides by its acceptance model instead (it needs
+    the 2D recall's scores, which a single-map check does not have).
     """
     m = jnp.maximum(map_id, 0)
     Ts, scales, matches, inliers = _keypoint_stage(bank, m, *_query_keypoints(entry, cfg), cfg, key)
-    return _refine_and_decide(bank, jnp.where(map_id >= 0, m, -1), entry, Ts, scales, matches, inliers, cfg)
+    return _refine_and_decide(bank, jnp.where(map_id >= 0, m, -1), entry, Ts, scales, matches, inliers, cfg)[0]
 
 
 @struct.dataclass
@@ -1183,7 +1181,7 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
     best = jnp.where(cand >= 0, jnp.max(inliers, 1), -1)
     b = jnp.argmax(best)
     m = cand[b]
-    v, screen, s_kp = _refine_and_decide_screened(bank, m, entry, Ts[b], scales[b], matches[b], inliers[b], cfg)
+    v, screen, s_kp = _refine_and_decide(bank, m, entry, Ts[b], scales[b], matches[b], inliers[b], cfg)
     feats = acceptance_features(bank, entry, r, best, b, inliers[b], screen, s_kp, v)
     score = None
     if cfg.accept_weights and cfg.verification == "full":
