@@ -12,6 +12,11 @@ ROOT = Path(__file__).resolve().parents[1]
 # (and CI, from a clean checkout) starts cold and its timings stay honest.
 _RUN = os.environ.get("PYTEST_XDIST_TESTRUNUID") or str(os.getpid())
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path(tempfile.gettempdir()) / f"cm3d-test-xla-{_RUN}"))
+# The CLI points JAX at its own cache (``$CM3D_JAX_CACHE``, default ~/.cache/cm3d/jax): the same
+# directory here, or an in-process ``cm3d demo`` would move the whole worker to another cache. The
+# directory is part of a program's cache key (JAX's compile options name XLA caches inside it), so
+# one directory for everything is what lets a smoke run reuse the program a test compiled.
+os.environ["CM3D_JAX_CACHE"] = os.environ["JAX_COMPILATION_CACHE_DIR"]
 
 # The whole run compiles at LLVM -O0, in-process tests and the scripts they start alike: compilation
 # is most of this suite's CPU time (measured on test_lm + test_pipeline + test_descriptors: 353 s

@@ -1,7 +1,6 @@
 """Smoke test: every script in experiments/ runs with --quick and writes its headline JSON."""
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -13,9 +12,6 @@ COVERED_ELSEWHERE = {
     "sweep.py": "tests/test_sweep.py runs it with --quick --json and checks its figures",
     "bench_motion.py": "bench_all.py --quick runs it with --quick --json and fails when it fails",
 }
-# Smoke runs compile far more than they compute: LLVM at -O0 saves ~25 % of their CPU time (the
-# figures of a --quick run mean nothing anyway; the full runs are never made with this flag).
-ENV = {**os.environ, "XLA_FLAGS": (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()}
 SCRIPTS = sorted(p for p in (ROOT / "experiments").glob("*.py")
                  if not p.name.startswith("_") and p.name not in COVERED_ELSEWHERE)
 
@@ -24,7 +20,7 @@ SCRIPTS = sorted(p for p in (ROOT / "experiments").glob("*.py")
 def test_experiment_quick(script, tmp_path):
     out = tmp_path / "figures.json"
     proc = subprocess.run([sys.executable, str(script), "--quick", "--json", str(out)], cwd=ROOT,
-                          capture_output=True, text=True, timeout=300, env=ENV)
+                          capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
     assert proc.stdout.strip(), "an experiment prints a readable table"
     figures = json.loads(out.read_text())

@@ -5,20 +5,17 @@ This is also the sweep's smoke test (``--quick --json``), so tests/test_experime
 
 import csv
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-# compiled at LLVM -O0 like the other experiment smoke runs (tests/test_experiments.py): less compile CPU
-ENV = {**os.environ, "XLA_FLAGS": (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()}
 
 
 def test_sharded_sweep_equals_single_device(tmp_path):
     out = tmp_path / "figures.json"
     proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "sweep.py"), "--quick", "--json", str(out),
-                           "--out", str(tmp_path / "sweep")], cwd=ROOT, capture_output=True, text=True, timeout=600, env=ENV)
+                           "--out", str(tmp_path / "sweep")], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
     figures = json.loads(out.read_text())
     assert figures["devices"] == 2
