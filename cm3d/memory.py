@@ -117,6 +117,7 @@ class MemoryConfig:
     ratio: float = 0.85  # keypoint matching: Lowe ratio against the best match elsewhere in 3D
     ransac_hypotheses: int = 256  # Sim(3) RANSAC: 3-point hypotheses per candidate
     upright_hypotheses: int = 128  # + 2-point hypotheses with both frames' up axes known (0: off; see upright_pairs)
+    pose_candidates: int = 1  # distinct RANSAC poses kept per hypothesis generator (sim3_consensus_top), screened
     up_prior: tuple[float, float, float] = (0.0, -1.0, 0.0)  # a camera's rough up (OpenCV: -y) in its own frame
     up_max_angle: float = 35.0  # degrees: normals this close to up_prior vote for the up axis (floor, ceiling)
     ransac_scored: int = 128  # RANSAC scores at most this many matches (one per query keypoint cluster)
@@ -148,14 +149,15 @@ class MemoryConfig:
     # instead of the AND of the thresholds above (hard checks kept: a stored map, finite transform, scale in
     # scale_range). A logistic regression on standardised features fitted on the tuning split of
     # experiments/memory_recall.py (--fit-acceptance prints these numbers); the operating threshold is folded
-    # into accept_bias. Empty: the thresholds decide. The defaults: `memory_recall.py --fit-acceptance` (200 maps).
-    accept_weights: tuple[float, ...] = (0.26901, 0, 0, 0.54994, 0.64111, 0.60447, 0.56578, 0.32399, 0.40942, 0,
-                                         -0.09093, -0.29532, 0.58535, 0, 0)
-    accept_mean: tuple[float, ...] = (0.69694, 0, 0, 2.84451, 1.82067, 2.22308, 2.11602, 1.31625, 0.49289, 0, 0.69932,
-                                      0.62117, 0.72355, 0, 0)
-    accept_scale: tuple[float, ...] = (0.31332, 1, 1, 0.84059, 1.18269, 0.73584, 0.91139, 1.25907, 0.30157, 1, 0.25848,
-                                       0.16494, 0.2471, 1, 1)
-    accept_bias: float = 0.07032
+    # into accept_bias. Empty: the thresholds decide. The defaults: `memory_recall.py --fit-acceptance` (200 maps,
+    # 1024 map keypoints, top_k=2, icp_points=512: the experiment's configuration).
+    accept_weights: tuple[float, ...] = (0.32529, 0, 0, 0.4599, 0.66647, 0.51604, 0.5081, 0.32989, 0.4344, 0,
+                                         -0.18415, -0.40978, 0.60611, 0, 0)
+    accept_mean: tuple[float, ...] = (0.71044, 0, 0, 2.89546, 1.82379, 2.31851, 2.16432, 1.45928, 0.49133, 0, 0.69508,
+                                      0.6373, 0.73721, 0, 0)
+    accept_scale: tuple[float, ...] = (0.29585, 1, 1, 1.01416, 1.3848, 0.85696, 1.08522, 1.3335, 0.29737, 1, 0.24183,
+                                       0.15873, 0.24674, 1, 1)
+    accept_bias: float = 0.68126
 
     def __post_init__(self):
         if self.descriptor_3d not in DESCRIPTOR_3D_DIMS:
@@ -174,6 +176,8 @@ class MemoryConfig:
         if self.fallback_yaws < 0 or self.fallback_grid < 8 or self.fallback_points < 3 or self.fallback_refine < 1:
             raise ValueError("MemoryConfig: fallback_yaws must be >= 0, fallback_grid >= 8, fallback_points >= 3, "
                              "fallback_refine >= 1")
+        if self.pose_candidates < 1:
+            raise ValueError(f"MemoryConfig.pose_candidates: must be >= 1, got {self.pose_candidates}")
         if self.upright_hypotheses < 0:
             raise ValueError(f"MemoryConfig.upright_hypotheses: must be >= 0, got {self.upright_hypotheses}")
         if len(self.up_prior) != 3 or not 0 < float(np.linalg.norm(self.up_prior)) < np.inf:
@@ -393,7 +397,7 @@ def recall(bank: MemoryBank, query_desc, query_valid, query_cloud_desc, cfg: Mem
     near = descriptors.hamming(qcodes[:, None, :], codes[None, :, :]) <= cfg.hash_radius
     d2 = jnp.sum((query_desc[:, None, :] - table[None]) ** 2, -1)
     ok = near & valid[None] & query_valid[:, None] & (d2 < cfg.match_radius**2)
-    best = jnp.argmin(jnp.where(ok, d2, jnp.inf), axis=1)
+    best = first_argmin(jnp.where(ok, d2, jnp.inf), 1)
     has = jnp.any(ok, axis=1)
     M = bank.map_valid.shape[0]
     votes = jnp.zeros(M).at[map_id[best]].add(has.astype(jnp.float32))
@@ -553,6 +557,33 @@ class Verification:
     colour_agreement: jax.Array
 
 
+def first_argmin(x, axis: int):
+    """``jnp.argmin(x, axis)`` for arrays without NaN (the first index of the minimum) as two plain
+    reductions (the min, then the smallest index reaching it): XLA's CPU backend runs them faster than
+    argmin's (value, index) reduction, which was a large part of keypoint matching's time."""
+    x = jnp.asarray(x)
+    low = jnp.min(x, axis=axis, keepdims=True)
+    shape = [1] * x.ndim
+    shape[axis] = x.shape[axis]
+    iota = jnp.arange(x.shape[axis], dtype=jnp.int32).reshape(shape)
+    return jnp.min(jnp.where(x == low, iota, x.shape[axis] - 1), axis=axis)
+
+
+def _nearest_descriptors(d2, m_points, ratio: float, min_separation):
+    """From squared descriptor distances d2 (Nq, Nm) (inf for invalid pairs): the nearest map keypoint j
+    (Nq,), its distance (Nq,), whether the match is mutual (Nq,) and whether it passes the 3D-aware ratio
+    test (Nq,) (see :func:`match_keypoints`). Squared 3D distances to the best match's point are expanded
+    as |a|^2 + |b|^2 - 2 a.b (one small matrix product instead of an (Nq, Nm, 3) difference)."""
+    j = first_argmin(d2, 1)
+    best = jnp.min(d2, axis=1)
+    pj = m_points[j]
+    sq = jnp.sum(m_points**2, -1)
+    far = sq[None, :] + sq[j][:, None] - 2.0 * (pj @ m_points.T) > min_separation**2
+    second = jnp.min(jnp.where(far, d2, jnp.inf), axis=1)
+    mutual = first_argmin(d2, 0)[j] == jnp.arange(d2.shape[0])
+    return j, best, mutual, jnp.isfinite(best) & (best <= ratio**2 * second)
+
+
 def match_keypoints(q: Keypoints, m: Keypoints, ratio: float, min_separation, d2=None):
     """Mutual nearest neighbours in descriptor space with a 3D-aware ratio test.
 
@@ -567,13 +598,8 @@ def match_keypoints(q: Keypoints, m: Keypoints, ratio: float, min_separation, d2
         d2 = 2.0 - 2.0 * (q.desc @ m.desc.T)  # unit descriptors: squared L2
         pair = q.valid[:, None] & m.valid[None, :]
         d2 = jnp.where(pair, d2, jnp.inf)
-    j = jnp.argmin(d2, axis=1)
-    best = jnp.min(d2, axis=1)
-    far = jnp.sum((m.points[None, :, :] - m.points[j][:, None, :]) ** 2, -1) > min_separation**2
-    second = jnp.min(jnp.where(far, d2, jnp.inf), axis=1)
-    mutual = jnp.argmin(d2, axis=0)[j] == jnp.arange(d2.shape[0])
-    ok = q.valid & jnp.isfinite(best) & mutual & (best <= ratio**2 * second)
-    return j, ok
+    j, _, mutual, ratio_ok = _nearest_descriptors(d2, m.points, ratio, min_separation)
+    return j, q.valid & mutual & ratio_ok
 
 
 def _similarity(s, R, t):
@@ -716,6 +742,33 @@ def sim3_consensus(src, dst, hypotheses, score_ok, threshold, scale_range, clust
     Umeyama on its inliers twice (a refit is kept when it loses no inlier, distinct 3D points when
     ``cluster`` is given). Returns (transform (4, 4), scale, inliers (N,) bool; none if no
     hypothesis is consistent, with a plausible scale, and has an inlier)."""
+    T, scale, inl = sim3_consensus_top(src, dst, hypotheses, score_ok, threshold, scale_range, cluster, keep=1)
+    return T[0], scale[0], inl[0]
+
+
+def distinct_best(pred, score, score_ok, threshold, keep: int, same_share: float = 0.5):
+    """Greedy non-maximum suppression of pose hypotheses: indices (keep,) of the best-scoring ones that
+    are *distinct* poses, and whether each exists (keep,) bool. ``pred`` (H, N, 3): each hypothesis's
+    prediction of the correspondences' sources; two hypotheses are the same pose when they predict at
+    least ``same_share`` of the scored correspondences (``score_ok`` (N,)) within ``threshold`` of each
+    other. ``score`` (H,): hypotheses with a score <= 0 are never kept."""
+    n = jnp.maximum(jnp.sum(score_ok), 1)
+    alive = score > 0
+    picks, exists = [], []
+    for _ in range(keep):
+        h = jnp.argmax(jnp.where(alive, score, -1))
+        picks.append(h)
+        exists.append(alive[h])
+        near = score_ok[None] & (jnp.sum((pred - pred[h][None]) ** 2, -1) < threshold**2)
+        alive = alive & (jnp.sum(near, 1) < same_share * n)
+    return jnp.stack(picks), jnp.stack(exists)
+
+
+def sim3_consensus_top(src, dst, hypotheses, score_ok, threshold, scale_range, cluster=None, keep: int = 1):
+    """:func:`sim3_consensus` keeping the ``keep`` best *distinct* poses (:func:`distinct_best`), each
+    refitted the same way: (transforms (keep, 4, 4), scales (keep,), inliers (keep, N) bool; a pose that
+    does not exist has no inlier). A box room's wrong poses often collect as many chance inliers as
+    the right one: the runners-up go on to a cheaper check (:func:`_screen_poses`)."""
     from cm3d.solvers.align import umeyama
 
     src, dst = jnp.asarray(src, jnp.float32), jnp.asarray(dst, jnp.float32)
@@ -726,19 +779,25 @@ def sim3_consensus(src, dst, hypotheses, score_ok, threshold, scale_range, clust
     inl = score_ok[None] & (jnp.sum((pred - dst[None]) ** 2, -1) < threshold**2)
     plausible = good & (s >= scale_range[0]) & (s <= scale_range[1]) & jnp.all(jnp.isfinite(pred), (1, 2))
     score = jnp.where(plausible, jnp.sum(inl, 1), 0)
-    h = jnp.argmax(score)
-    best = inl[h]
-    T = _similarity(s[h], R[h], t[h])
-    for _ in range(2):
-        s2, R2, t2 = umeyama(src, dst, best, with_scale=True)
-        T2 = _similarity(s2, R2, t2)
-        inl2 = score_ok & (jnp.sum((src @ T2[:3, :3].T + T2[:3, 3] - dst) ** 2, -1) < threshold**2)
-        better = ((count(inl2) >= count(best)) & (s2 >= scale_range[0]) & (s2 <= scale_range[1])
-                  & jnp.all(jnp.isfinite(T2)))
-        T = jnp.where(better, T2, T)
-        best = jnp.where(better, inl2, best)
-    scale = jnp.cbrt(jnp.linalg.det(T[:3, :3]))
-    return T, scale, best & (score[h] > 0)
+
+    def refit(h, ex):
+        best = inl[h]
+        T = _similarity(s[h], R[h], t[h])
+        for _ in range(2):
+            s2, R2, t2 = umeyama(src, dst, best, with_scale=True)
+            T2 = _similarity(s2, R2, t2)
+            inl2 = score_ok & (jnp.sum((src @ T2[:3, :3].T + T2[:3, 3] - dst) ** 2, -1) < threshold**2)
+            better = ((count(inl2) >= count(best)) & (s2 >= scale_range[0]) & (s2 <= scale_range[1])
+                      & jnp.all(jnp.isfinite(T2)))
+            T = jnp.where(better, T2, T)
+            best = jnp.where(better, inl2, best)
+        return T, jnp.cbrt(jnp.linalg.det(T[:3, :3])), best & ex
+
+    if keep == 1:
+        h = jnp.argmax(score)
+        return jax.tree.map(lambda a: a[None], refit(h, score[h] > 0))
+    hs, exists = distinct_best(pred, score, score_ok, threshold, keep)
+    return jax.vmap(refit)(hs, exists)
 
 
 def _even_subsample(points, valid, n: int):
@@ -796,7 +855,7 @@ def grid_nearest(q, points, valid, cell, reach: int = 1, per_cell: int = 2):
     c = codes[idx]
     hit = inside[..., None] & (c >= lo[..., None]) & (c <= hi[..., None])
     d2 = jnp.where(hit, jnp.sum((points[idx] - q[:, None, None, :]) ** 2, -1), jnp.inf).reshape(q.shape[0], -1)
-    k = jnp.argmin(d2, 1)
+    k = first_argmin(d2, 1)
     n = jnp.arange(q.shape[0])
     return idx.reshape(q.shape[0], -1)[n, k], d2[n, k]
 
@@ -855,10 +914,9 @@ def _keypoint_stage(bank: MemoryBank, m, query: Keypoints, cluster, frame_q, sep
     thr = cfg.ransac_distance * vs
     mk = Keypoints(bank.kp_points[m], bank.kp_desc[m], bank.kp_valid[m])
     d2 = jnp.where(query.valid[:, None] & mk.valid[None, :], 2.0 - 2.0 * (query.desc @ mk.desc.T), jnp.inf)
-    j, strict = match_keypoints(query, mk, cfg.ratio, thr, d2=d2)
+    j, best, mutual, ratio_ok = _nearest_descriptors(d2, mk.points, cfg.ratio, thr)  # (match_keypoints)
+    strict = query.valid & mutual & ratio_ok
     n = jnp.arange(d2.shape[0])
-    best = d2[n, j]
-    mutual = jnp.argmin(d2, axis=0)[j] == n
     ok = strict | (query.valid & mutual & (best < cfg.loose_descriptor**2))
     rank = jnp.where(ok, best, jnp.inf)
     tops = ok & (rank <= jax.ops.segment_min(rank, cluster, num_segments=n.shape[0])[cluster])
@@ -873,9 +931,11 @@ def _keypoint_stage(bank: MemoryBank, m, query: Keypoints, cluster, frame_q, sep
         gens.append(upright_pairs(src, dst, ok, jax.random.fold_in(key, 1), cfg.upright_hypotheses, frame_q, frame_m,
                                   sep_q, cfg.scale_range))
     # one scored match per query cluster: inliers are distinct 3D points, and a plain count counts them
-    Ts, scales, inls = zip(*(sim3_consensus(*scored[:2], h, scored[2], thr, cfg.scale_range) for h in gens))
-    inls = jnp.stack([jnp.sum(i) for i in inls])
-    return jnp.stack(Ts), jnp.stack(scales), jnp.sum(strict).astype(jnp.int32), inls.astype(jnp.int32)
+    Ts, scales, inls = zip(*(sim3_consensus_top(*scored[:2], h, scored[2], thr, cfg.scale_range,
+                                                keep=cfg.pose_candidates) for h in gens))
+    inls = jnp.sum(jnp.concatenate(inls), -1)
+    return (jnp.concatenate(Ts), jnp.concatenate(scales), jnp.sum(strict).astype(jnp.int32),
+            inls.astype(jnp.int32))
 
 
 def _screen_poses(bank: MemoryBank, m, entry: MapEntry, Ts, cfg: MemoryConfig):
@@ -946,6 +1006,8 @@ def _refine_and_decide(bank, m, entry: MapEntry, Ts, scales, matches, inliers, c
         return (_decide(bank, m, Ts[g], scales[g], matches, inliers[g], None, cfg), jnp.zeros((), jnp.float32),
                 scales[g])
     screen = _screen_poses(bank, mm, entry, Ts, cfg)
+    first = jnp.arange(Ts.shape[0]) % cfg.pose_candidates == 0  # each generator's best (kept as before)
+    screen = jnp.where(first | (inliers > 0), screen, -1)  # a runner-up pose that does not exist
     g = jnp.argmax(screen * (cfg.ransac_scored + 1) + inliers)  # colour-consistent overlap first, inliers break ties
     icp = _icp_stage(bank, mm, entry, Ts[g], cfg)
     return (_decide(bank, m, Ts[g], scales[g], matches, inliers[g], icp, cfg), screen[g] / cfg.screen_points,
@@ -1182,7 +1244,8 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
     b = jnp.argmax(best)
     m = cand[b]
     v, screen, s_kp = _refine_and_decide(bank, m, entry, Ts[b], scales[b], matches[b], inliers[b], cfg)
-    feats = acceptance_features(bank, entry, r, best, b, inliers[b], screen, s_kp, v)
+    per_generator = jnp.max(inliers[b].reshape(-1, cfg.pose_candidates), 1)  # (G,) each generator's best
+    feats = acceptance_features(bank, entry, r, best, b, per_generator, screen, s_kp, v)
     score = None
     if cfg.accept_weights and cfg.verification == "full":
         score = acceptance_score(feats, cfg)

@@ -11,7 +11,8 @@ Priors are VGGT-like at the "slight" noise level; static pixels come from the gr
 dynamic mask (the motion stage is evaluated elsewhere).
 
 Preparation (host, timed separately): image descriptors and keyframes, SIFT keypoints on static
-pixels (OpenCV) lifted to 3D with the prior depth and poses, static cloud, map entry. Queries
+pixels (OpenCV) lifted to 3D with the prior depth and poses (a map keeps 1024, 32 per frame; a query
+256), static cloud, map entry. Queries
 (jit, vmapped over a batch of prepared queries, CPU): hashed 2D recall of ``top_k`` candidates,
 keypoint matching + Sim(3) RANSAC per candidate (3-point hypotheses from the strict matches and
 2-point *upright* hypotheses, both frames' up axes estimated from floor/ceiling normals), the pose
@@ -40,7 +41,8 @@ Tables:
   50 test scenes below 100; at 200 maps also the accuracy counting only right poses;
 - ablation at 200 maps (test split): 2D only / 2D+3D keypoints (no ICP) / 2D+3D+ICP without the
   upright pairs / full with the AND of the tuned thresholds / full with the acceptance model (the
-  headline) / thresholds + the keypoint-free fallback
+  headline) / the previous capacities (512 map keypoints, 3 recall candidates; model refitted on the
+  tuning split; q/s ratio in the same process) / thresholds + the keypoint-free fallback
   (``MemoryConfig.fallback_yaws``; its thresholds tuned on the tuning split by :func:`tune_fallback`
   with the keypoint thresholds fixed; off in the headline rows), and the 2D stage's recall@1/2/3 (the
   true map among the candidates: what verification can reach);
@@ -57,7 +59,11 @@ Tables:
 ``--quick`` (the smoke test): 3 stored rooms, 2 unseen, 6-frame visits, one bank size (3), no
 ablation or map update: it checks that the script runs, not the figures (its time is mostly
 compilation).
-Generated and prepared visits are cached in ``~/.cache/cm3d/memory_recall`` (``--no-cache``: off).
+Generated and prepared visits are cached in ``~/.cache/cm3d/memory_recall`` (``--no-cache``: off) with
+*all* their lifted keypoints (``RAW_KP_PER_FRAME`` = 128 per frame, files ``raw-*.npz``): a keypoint
+capacity is a cut of that list (:func:`cut_keypoints`), so changing it re-renders nothing (the first
+full run renders ~600 visits: ~15-25 min of one core). Older files holding one capacity are still read
+when no raw file exists.
 """
 
 from __future__ import annotations
@@ -81,10 +87,13 @@ from cm3d.ops import descriptors, keypoints
 from cm3d.outputs import write_json
 
 WORLD = synthetic.WorldConfig(height=120, width=160, supersample=1, fps=1.0)
-CFG = memory.MemoryConfig(max_maps=200, max_points=4096, max_keyframes=16, max_keypoints=512,
-                          voxel_resolution=40.0, pixel_stride=4, top_k=3)
+CFG = memory.MemoryConfig(max_maps=200, max_points=4096, max_keyframes=16, max_keypoints=1024,
+                          voxel_resolution=40.0, pixel_stride=4, top_k=2, icp_points=512)
 QUERY_KEYPOINTS = 256
-KP_PER_FRAME = 64
+# the previous capacities (stop 15), an ablation row: 512 map keypoints (16 per frame), 3 recall candidates
+PREVIOUS = dict(max_keypoints=512, top_k=3)
+KP_PER_FRAME = 64  # (the legacy cache files' detection capacity per frame; see RAW_KP_PER_FRAME)
+RAW_KP_PER_FRAME = 128  # SIFT keypoints per frame lifted and cached before the capacity cut (see load_visits)
 SIFT_CONTRAST = 0.01  # OpenCV's default 0.04 finds almost nothing on weakly textured rooms at 120x160
 KEYFRAME_THRESHOLD = 0.1
 LEVEL = "slight"
@@ -121,14 +130,16 @@ def _prepare_fn(cfg: memory.MemoryConfig, capacity: int):
 _PREP = {}
 
 
-def prepare(scene_seed: int, visit: int, frames: int, capacity: int, cfg: memory.MemoryConfig = CFG) -> Visit:
-    """Render, prior and prepare one visit (host + jit); timings per stage in ``prep_s``."""
+def prepare(scene_seed: int, visit: int, frames: int, capacity: int, cfg: memory.MemoryConfig = CFG,
+            per_frame: int = KP_PER_FRAME) -> Visit:
+    """Render, prior and prepare one visit (host + jit); timings per stage in ``prep_s``. ``per_frame``
+    SIFT keypoints per frame (strongest first), lifted and cut to ``capacity`` round robin over frames."""
     t0 = time.perf_counter()
     seq = synthetic.generate(scene_seed, visit, frames, LEVEL, WORLD)
     t1 = time.perf_counter()
     static = ~seq.gt.dynamic_mask
     desc = _frame_descriptors(jnp.asarray(seq.images), jnp.asarray(static))
-    feats = keypoints.detect_sequence(seq.images, static, KP_PER_FRAME, contrast_threshold=SIFT_CONTRAST)
+    feats = keypoints.detect_sequence(seq.images, static, per_frame, contrast_threshold=SIFT_CONTRAST)
     t2 = time.perf_counter()
     key = (capacity, frames)
     if key not in _PREP:
@@ -146,33 +157,70 @@ def prepare(scene_seed: int, visit: int, frames: int, capacity: int, cfg: memory
                  {"render": t1 - t0, "features": t2 - t1, "entry": t3 - t2})
 
 
-def _cache_key(args) -> str:
+def _cache_key(args, per_frame: int = KP_PER_FRAME, version: int = 2) -> str:
     """What a prepared visit depends on (verification thresholds do not invalidate the cache)."""
     prep = {k: getattr(CFG, k) for k in ("max_points", "max_keyframes", "image_dim", "cloud_dim", "keypoint_dim",
                                          "voxel_resolution", "min_conf_quantile", "pixel_stride", "normal_radius")}
-    text = json.dumps([args, dataclasses.asdict(WORLD), prep, KP_PER_FRAME, SIFT_CONTRAST, KEYFRAME_THRESHOLD, LEVEL, 2])
+    text = json.dumps([args, dataclasses.asdict(WORLD), prep, per_frame, SIFT_CONTRAST, KEYFRAME_THRESHOLD, LEVEL,
+                       version])
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def load_visits(specs, use_cache: bool) -> list[Visit]:
-    """Prepared visits for (seed, visit, frames, capacity) specs, from the cache when present."""
+def raw_path(seed: int, visit: int, frames: int) -> Path:
+    """The cache file of a visit with *all* its lifted keypoints (``RAW_KP_PER_FRAME`` per frame, round
+    robin over frames, before any capacity cut): any keypoint capacity is a prefix of it."""
+    return CACHE / f"raw-{_cache_key([seed, visit, frames], RAW_KP_PER_FRAME, 3)}.npz"
+
+
+def cut_keypoints(v: Visit, capacity: int) -> Visit:
+    """The visit with its keypoints cut (or padded) to ``capacity``. :func:`cm3d.memory.lift_keypoints`
+    orders keypoints round robin over frames, each frame's strongest first, so the first ``capacity``
+    of a larger lift are exactly a lift at ``capacity`` (for ``capacity <= frames x per-frame`` of the
+    smaller detection: tested in ``tests/test_memory.py``)."""
+    kp = v.entry.keypoints
+    n = kp.valid.shape[0]
+    if n >= capacity:
+        cut = memory.Keypoints(kp.points[:capacity], kp.desc[:capacity], kp.valid[:capacity])
+    else:
+        pad = lambda a: np.concatenate([a, np.zeros((capacity - n,) + a.shape[1:], a.dtype)])  # noqa: E731
+        cut = memory.Keypoints(pad(kp.points), pad(kp.desc), pad(kp.valid))
+    return dataclasses.replace(v, entry=v.entry.replace(keypoints=cut))
+
+
+def _read(path: Path, capacity: int) -> Visit:
+    z = np.load(path, allow_pickle=False)
+    leaves = [z[f"leaf{i}"] for i in range(int(z["n"]))]
+    treedef = jax.tree.structure(_template(capacity))
+    return Visit(jax.tree.unflatten(treedef, leaves), z["pfw"], z["static"], json.loads(str(z["prep"])))
+
+
+def _write(path: Path, v: Visit) -> None:
+    CACHE.mkdir(parents=True, exist_ok=True)
+    leaves = jax.tree.leaves(v.entry)
+    with atomic_write(path) as f:
+        np.savez(f, n=len(leaves), pfw=v.prior_from_world, static=v.static_world, prep=json.dumps(v.prep_s),
+                 **{f"leaf{i}": a for i, a in enumerate(leaves)})
+
+
+def load_visits(specs, use_cache: bool, raw: bool = False) -> list[Visit]:
+    """Prepared visits for (seed, visit, frames, capacity) specs, from the cache when present: the *raw*
+    file (all lifted keypoints, :func:`raw_path`, cut to ``capacity``) when there is one, else the legacy
+    file of that exact capacity (``KP_PER_FRAME`` per frame); a visit in neither is prepared and cached
+    raw. ``raw``: only raw files (a keypoint capacity sweep; missing ones are prepared)."""
     out = []
     for spec in specs:
-        path = CACHE / f"{_cache_key(spec)}.npz"
-        if use_cache and path.exists():
-            z = np.load(path, allow_pickle=False)
-            leaves = [z[f"leaf{i}"] for i in range(int(z["n"]))]
-            treedef = jax.tree.structure(_template(spec[3]))
-            out.append(Visit(jax.tree.unflatten(treedef, leaves), z["pfw"], z["static"], json.loads(str(z["prep"]))))
+        seed, visit, frames, capacity = spec
+        rp, legacy = raw_path(seed, visit, frames), CACHE / f"{_cache_key(spec)}.npz"
+        if use_cache and rp.exists():
+            out.append(cut_keypoints(_read(rp, frames * RAW_KP_PER_FRAME), capacity))
             continue
-        v = prepare(*spec)
+        if use_cache and not raw and legacy.exists():
+            out.append(_read(legacy, capacity))
+            continue
+        v = prepare(seed, visit, frames, frames * RAW_KP_PER_FRAME, per_frame=RAW_KP_PER_FRAME)
         if use_cache:
-            CACHE.mkdir(parents=True, exist_ok=True)
-            leaves = jax.tree.leaves(v.entry)
-            with atomic_write(path) as f:
-                np.savez(f, n=len(leaves), pfw=v.prior_from_world, static=v.static_world, prep=json.dumps(v.prep_s),
-                         **{f"leaf{i}": a for i, a in enumerate(leaves)})
-        out.append(v)
+            _write(rp, v)
+        out.append(cut_keypoints(v, capacity))
     return out
 
 
@@ -701,6 +749,22 @@ def main(argv=None):
             print(f"{'':>42} (test revisits only the fallback accepts: {rescued or 'none'}; q/s ratio to the "
                   f"thresholds row {qps_ref[mode] / qps_ref.get('thresholds', qps_ref['full']):.2f})")
             figures["fallback_qps_ratio"] = qps_ref[mode] / qps_ref.get("thresholds", qps_ref["full"])
+    if not quick:  # the previous capacities: map keypoints cut to 512 (a prefix), 3 candidates, model refitted
+        prev_cfg = dataclasses.replace(full["cfg"], **PREVIOUS)
+        prev_maps = [cut_keypoints(v, PREVIOUS["max_keypoints"]) for v in maps]
+        fields = fit_acceptance(build_bank(prev_maps, prev_cfg), tuning_q, truth[~test], is_unseen[~test], prev_cfg,
+                                pose_ok, query_ids=tq)[0]
+        prev_cfg = dataclasses.replace(prev_cfg, **(fields or {}))
+        ids_m, T_m, dt = identify_batch(build_bank(prev_maps, prev_cfg), allq, prev_cfg)
+        posed_m = right_pose(prev_maps, [revisits[q] for q in mine], ids_m[mine], T_m[mine], truth[mine])
+        acc, fa = float(np.mean(posed_m)), float(np.mean(ids_m[test_uns] >= 0))
+        acc_map = float(np.mean(ids_m[mine] == truth[mine]))
+        name = f"previous: {PREVIOUS['max_keypoints']} map keypoints, top {PREVIOUS['top_k']} (refitted)"
+        print(f"{name:>42} {100 * acc:>8.1f}% {100 * acc_map:>8.1f}% {100 * fa:>9.1f}% {Q / dt:>10.1f}")
+        figures["ablation_previous_accuracy"], figures["ablation_previous_false_accept"] = acc, fa
+        figures["ablation_previous_accuracy_map"], figures["ablation_previous_qps"] = acc_map, Q / dt
+        figures["qps_ratio_to_previous"] = qps_ref["full"] / (Q / dt)
+        print(f"{'':>42} (q/s of the full row / this row, same process: {figures['qps_ratio_to_previous']:.2f})")
     if "thresholds" in qps_ref:
         figures["model_qps_ratio"] = qps_ref["full"] / qps_ref["thresholds"]
         print(f"(q/s of the acceptance model / the thresholds, same process: {figures['model_qps_ratio']:.2f}; "

@@ -308,6 +308,104 @@ def test_lift_keypoints_agrees_with_unprojection_and_round_robin():
     assert not np.any(np.asarray(kp.points)[~np.asarray(kp.valid)])  # padding is zero
 
 
+def test_lift_keypoints_of_a_larger_detection_starts_with_the_smaller_lift():
+    """The round robin makes capacities nested: a lift at capacity ``c`` is the first ``c`` of a lift at
+    a larger capacity; and when every frame's ``n`` strongest keypoints have depth, lifting them equals the
+    first ``S * n`` of a lift of more per frame (what lets experiments/memory_recall.py cache every lifted
+    keypoint once and sweep capacities by a cut)."""
+    S, H, W, N = 3, 20, 30, 6
+    rng = np.random.default_rng(5)
+    depth = rng.uniform(1, 3, (S, H, W)).astype(np.float32)
+    K = np.tile(np.array([[20.0, 0, 14.5], [0, 20.0, 9.5], [0, 0, 1]], np.float32), (S, 1, 1))
+    c2w = np.tile(np.eye(4, dtype=np.float32), (S, 1, 1))
+    uv = rng.integers(0, [W, H], (S, N, 2)).astype(np.float32)
+    desc = rng.normal(size=(S, N, 8)).astype(np.float32)
+    valid = np.ones((S, N), bool)
+    valid[2, 4:] = False  # a frame with fewer keypoints than the larger detection's capacity
+    lift = jax.jit(memory.lift_keypoints, static_argnums=6)
+
+    def same(small, big, c):
+        np.testing.assert_array_equal(np.asarray(small.valid), np.asarray(big.valid)[:c])
+        np.testing.assert_array_equal(np.asarray(small.desc), np.asarray(big.desc)[:c])
+        np.testing.assert_allclose(np.asarray(small.points), np.asarray(big.points)[:c], atol=1e-5)  # (ulps)
+
+    big = lift(uv, desc, valid, depth, K, c2w, S * N)
+    for n, c in ((2, S * 2), (4, S * 4 - 1)):
+        same(lift(uv[:, :n], desc[:, :n], valid[:, :n], depth, K, c2w, c), big, c)
+    hole = depth.copy()
+    hole[0, int(uv[0, 1, 1]), int(uv[0, 1, 0])] = 0.0  # a keypoint without depth: same detection, any capacity
+    big = lift(uv, desc, valid, hole, K, c2w, S * N)
+    same(lift(uv, desc, valid, hole, K, c2w, 7), big, 7)
+    assert not np.asarray(big.valid)[S * N - 2:].any()  # the hole and the invalid ones: padding at the end
+
+
+def test_first_argmin_equals_numpy_argmin_with_ties_and_inf():
+    rng = np.random.default_rng(7)
+    x = rng.integers(0, 4, (9, 13)).astype(np.float32)  # many ties: the first index must win
+    x[2] = np.inf  # a row without any valid entry: index 0, as argmin
+    x[:, 5] = np.inf
+    f = jax.jit(memory.first_argmin, static_argnums=1)
+    for axis in (0, 1):
+        np.testing.assert_array_equal(np.asarray(f(x, axis)), np.argmin(x, axis=axis))
+    with pytest.raises(ValueError, match="pose_candidates"):
+        memory.MemoryConfig(pose_candidates=0)
+
+
+def _nms_reference(pred, score, ok, threshold, keep, share=0.5):
+    """Greedy non-maximum suppression in NumPy: the best remaining hypothesis, then drop every one that
+    predicts >= share of the scored correspondences within threshold of it."""
+    alive, picks = score > 0, []
+    for _ in range(keep):
+        if not alive.any():
+            break
+        h = int(np.argmax(np.where(alive, score, -1)))
+        picks.append(h)
+        near = ok[None] & (np.sum((pred - pred[h][None]) ** 2, -1) < threshold**2)
+        alive &= near.sum(1) < share * max(ok.sum(), 1)
+    return picks
+
+
+def test_sim3_consensus_top_keeps_the_best_distinct_poses():
+    """Correspondences from two similarities (60 for A, 35 for B) and outliers; hypotheses: noisy copies
+    of A and B and random ones. keep=3: A's pose first, then B's (not a second copy of A), each refitted to
+    its own inliers; the picks equal a NumPy greedy NMS; the first is :func:`memory.sim3_consensus`'s."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(6)
+    src = rng.uniform(-1, 1, (120, 3)).astype(np.float32)
+    poses = [(1.3, Rotation.from_rotvec([0.1, 0.9, -0.2]).as_matrix(), np.array([0.5, -1.0, 0.2])),
+             (0.7, Rotation.from_rotvec([-1.2, 0.3, 0.4]).as_matrix(), np.array([-2.0, 0.5, 1.0]))]
+    dst = rng.uniform(-3, 3, (120, 3)).astype(np.float32)
+    for (s, R, t), sl in zip(poses, (slice(0, 60), slice(60, 95))):
+        dst[sl] = s * src[sl] @ R.T + t
+    hyp = []
+    for i in range(24):
+        s, R, t = poses[i % 3] if i % 3 < 2 else (rng.uniform(0.5, 2), Rotation.random(random_state=i).as_matrix(),
+                                                  rng.normal(size=3))
+        noise = Rotation.from_rotvec(rng.normal(scale=0.01, size=3)).as_matrix() if i % 3 < 2 else np.eye(3)
+        hyp.append((s, noise @ R, t + rng.normal(scale=0.005, size=3)))
+    hyps = (jnp.asarray([h[0] for h in hyp], jnp.float32), jnp.asarray(np.stack([h[1] for h in hyp]), jnp.float32),
+            jnp.asarray(np.stack([h[2] for h in hyp]), jnp.float32), jnp.ones(24, bool))
+    ok = np.ones(120, bool)
+    top = jax.jit(memory.sim3_consensus_top, static_argnums=(5, 7))
+    T, scale, inl = top(src, dst, hyps, ok, 0.05, (0.25, 4.0), None, 3)
+    inl = np.asarray(inl)
+    np.testing.assert_allclose(np.asarray(scale[:2]), [1.3, 0.7], rtol=1e-4)
+    assert inl[0, :60].all() and inl[0].sum() == 60 and inl[1, 60:95].all() and inl[1].sum() == 35
+    for k in range(2):
+        s, R, t = poses[k]
+        np.testing.assert_allclose(np.asarray(T[k]), memory._similarity(s, jnp.asarray(R), jnp.asarray(t)), atol=1e-4)
+    pred = np.stack([h[0] * src @ h[1].T + h[2] for h in hyp])
+    score = np.sum(np.sum((pred - dst[None]) ** 2, -1) < 0.05**2, 1)
+    picks, exists = jax.jit(memory.distinct_best, static_argnums=4)(pred, score, ok, 0.05, 3)
+    ref = _nms_reference(pred, score, ok, 0.05, 3)
+    assert list(np.asarray(picks)[np.asarray(exists)]) == ref and ref[:2] == [int(np.argmax(score)), ref[1]]
+    assert ref[1] % 3 == 1  # the second pick is a copy of B
+    T0, s0, i0 = jax.jit(memory.sim3_consensus, static_argnums=5)(src, dst, hyps, ok, 0.05, (0.25, 4.0))
+    np.testing.assert_allclose(np.asarray(T[0]), np.asarray(T0), atol=1e-5)  # keep=1: the best pose only
+    np.testing.assert_array_equal(inl[0], np.asarray(i0))
+
+
 def test_ransac_sim3_recovers_a_similarity_among_outliers():
     from scipy.spatial.transform import Rotation
 
