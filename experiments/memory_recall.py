@@ -1,9 +1,10 @@
 """Memory bank recall, verification, relocalisation and map update (the paper's Tables 5 and 9).
 
-    .venv/bin/python experiments/memory_recall.py [--quick] [--json PATH] [--no-cache] [--no-tune]
+    .venv/bin/python experiments/memory_recall.py [--quick] [--json PATH] [--no-cache] [--no-tune] [--size HxW]
     .venv/bin/python experiments/memory_recall.py --fit-acceptance   # refit the MemoryConfig accept_* defaults
 
-Synthetic worlds (:mod:`cm3d.data.synthetic`, 120x160 renders, 1 frame per second): scene ``i``
+Synthetic worlds (:mod:`cm3d.data.synthetic`, 120x160 renders (``--size``: another size, measured
+worse at 240x320, docs/memory.md), 1 frame per second): scene ``i``
 is stored from a 32-frame look-around visit (visit 0); a *revisit* query is a 12-frame visit of
 the same room from another place and direction (visit 1, other moving objects, its own prior
 scale and frame); an *unseen* query is a 12-frame visit of a room never stored (seeds from 10000).
@@ -586,7 +587,19 @@ def pose_colour(maps, revisits, q, m, cfg: memory.MemoryConfig):
     return float(inl.sum() / max(int(np.sum(sv)), 1)), float(near_colour.sum() / max(int(inl.sum()), 1))
 
 
+def _size(text: str) -> tuple[int, int]:
+    """``--size HxW`` -> (H, W), both positive."""
+    try:
+        h, w = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected HxW such as 240x320, got {text!r}") from None
+    if h < 16 or w < 16:
+        raise argparse.ArgumentTypeError(f"both sides must be >= 16 pixels, got {text!r}")
+    return h, w
+
+
 def main(argv=None):
+    global WORLD
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--json", type=Path)
@@ -594,7 +607,11 @@ def main(argv=None):
     ap.add_argument("--no-tune", action="store_true", help="use the MemoryConfig defaults (thresholds and model)")
     ap.add_argument("--fit-acceptance", action="store_true",
                     help="only fit the acceptance model on the tuning split and print it as MemoryConfig defaults")
+    ap.add_argument("--size", default=None, type=_size, metavar="HxW",
+                    help=f"render size (default {WORLD.height}x{WORLD.width}; its own cache files)")
     args = ap.parse_args(argv)
+    if args.size:
+        WORLD = dataclasses.replace(WORLD, height=args.size[0], width=args.size[1])
     quick = args.quick
     n_maps, n_unseen = (3, 2) if quick else (200, 200)
     sizes = (3,) if quick else (1, 50, 100, 200)
