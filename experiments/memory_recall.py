@@ -588,7 +588,7 @@ def pose_colour(maps, revisits, q, m, cfg: memory.MemoryConfig):
 
 
 def _size(text: str) -> tuple[int, int]:
-    """``--size HxW`` -> (H, W), both positive."""
+    """``--size HxW`` -> (H, W), both at least 16 pixels."""
     try:
         h, w = (int(x) for x in text.lower().split("x"))
     except ValueError:
