@@ -584,21 +584,21 @@ def _nearest_descriptors(d2, m_points, ratio: float, min_separation):
     return j, best, mutual, jnp.isfinite(best) & (best <= ratio**2 * second)
 
 
-def match_keypoints(q: Keypoints, m: Keypoints, ratio: float, min_separation, d2=None):
+def _descriptor_d2(q: Keypoints, m: Keypoints):
+    """(Nq, Nm) squared L2 distances of unit descriptors, inf for pairs with an invalid keypoint."""
+    return jnp.where(q.valid[:, None] & m.valid[None, :], 2.0 - 2.0 * (q.desc @ m.desc.T), jnp.inf)
+
+
+def match_keypoints(q: Keypoints, m: Keypoints, ratio: float, min_separation):
     """Mutual nearest neighbours in descriptor space with a 3D-aware ratio test.
 
     The second-best match is searched among map keypoints farther than ``min_separation`` (map
     units) from the best one, so repeated views of one 3D point do not fail the ratio test.
-    ``d2``: the (Nq, Nm) squared descriptor distances when already computed (inf for invalid pairs).
     Returns (j (Nq,) map index per query keypoint, ok (Nq,) bool).
     """
     q = jax.tree.map(jnp.asarray, q)
     m = jax.tree.map(jnp.asarray, m)
-    if d2 is None:
-        d2 = 2.0 - 2.0 * (q.desc @ m.desc.T)  # unit descriptors: squared L2
-        pair = q.valid[:, None] & m.valid[None, :]
-        d2 = jnp.where(pair, d2, jnp.inf)
-    j, _, mutual, ratio_ok = _nearest_descriptors(d2, m.points, ratio, min_separation)
+    j, _, mutual, ratio_ok = _nearest_descriptors(_descriptor_d2(q, m), m.points, ratio, min_separation)
     return j, q.valid & mutual & ratio_ok
 
 
@@ -913,7 +913,7 @@ def _keypoint_stage(bank: MemoryBank, m, query: Keypoints, cluster, frame_q, sep
     vs = jnp.maximum(bank.voxel_size[m], 1e-12)
     thr = cfg.ransac_distance * vs
     mk = Keypoints(bank.kp_points[m], bank.kp_desc[m], bank.kp_valid[m])
-    d2 = jnp.where(query.valid[:, None] & mk.valid[None, :], 2.0 - 2.0 * (query.desc @ mk.desc.T), jnp.inf)
+    d2 = _descriptor_d2(query, mk)
     j, best, mutual, ratio_ok = _nearest_descriptors(d2, mk.points, cfg.ratio, thr)  # (match_keypoints)
     strict = query.valid & mutual & ratio_ok
     n = jnp.arange(d2.shape[0])
