@@ -105,3 +105,92 @@ def test_detect_features_rootsift_mask_and_padding():
     assert not np.any(empty.valid)
     with pytest.raises(ValueError, match="mask"):
         keypoints.detect_features(seq.images[0], np.ones((10, 10), bool))
+
+
+def _visit(scene, visit, frames, level):
+    from cm3d.data import synthetic
+
+    seq = synthetic.generate(scene, visit, frames, level, synthetic.WorldConfig(height=120, width=160, supersample=1))
+    s = seq.meta["prior_scale"]
+    prior_from_world = np.diag([s, s, s, 1.0]) @ np.linalg.inv(seq.gt.cam_to_world[0])
+    return seq, prior_from_world
+
+
+def test_floor_plane_and_orthophoto_against_ground_truth():
+    from cm3d.ops import keypoints
+
+    seq, pfw = _visit(9, 1, 6, "none")  # exact priors up to the visit's unknown scale
+    static = ~seq.gt.dynamic_mask
+    n, c = keypoints.floor_plane(seq.depth, seq.intrinsic, seq.cam_to_world, static)
+    n_gt = pfw[:3, :3] @ np.array([0.0, 0.0, 1.0])  # the world floor is z = 0
+    n_gt /= np.linalg.norm(n_gt)
+    height_gt = seq.gt.cam_to_world[0][2, 3] * seq.meta["prior_scale"]
+    assert np.degrees(np.arccos(np.clip(n @ n_gt, -1, 1))) < 0.5
+    assert abs(c - height_gt) < 0.01 * height_gt
+    img, ok, to_world = keypoints.floor_orthophoto(seq.images, seq.depth, seq.intrinsic, seq.cam_to_world, static,
+                                                   (n, c))
+    assert img.shape[:2] == ok.shape and 0.3 < ok.mean() < 1.0 and img[ok].std() > 5
+    v, u = np.nonzero(ok)
+    X = np.stack([u, v, np.ones_like(u)], -1) @ to_world.T
+    np.testing.assert_allclose(X @ n + c, 0.0, atol=1e-6)  # every pixel is a point of the plane
+    # the orthophoto's colour at a floor point is the first frame's colour where that point projects
+    K, w2c = seq.intrinsic[0], np.linalg.inv(seq.cam_to_world[0])
+    Xc = X @ w2c[:3, :3].T + w2c[:3, 3]
+    uv = Xc[:, :2] / Xc[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]
+    H, W = seq.depth.shape[1:]
+    inside = (Xc[:, 2] > 0) & np.all((uv > 2) & (uv < [W - 3, H - 3]), 1)
+    ui, vi = np.round(uv[inside]).astype(int).T
+    near = inside.copy()
+    near[inside] = static[0, vi, ui] & (Xc[inside, 2] < 1.2 * seq.depth[0, vi, ui])  # not hidden
+    ui, vi = np.round(uv[near]).astype(int).T
+    diff = np.abs(img[v[near], u[near]].astype(float) - seq.images[0, vi, ui].astype(float)).mean(1)
+    assert near.sum() > 1000 and np.median(diff) < 25
+
+
+def test_floor_features_match_across_visits_better_than_image_sift():
+    import jax.numpy as jnp
+
+    from cm3d import memory
+    from cm3d.ops import keypoints
+
+    def mutual_right(a_pts, a_desc, b_pts, b_desc, T, tol):
+        d = ((a_desc[:, None] - b_desc[None]) ** 2).sum(-1)
+        nn, back = d.argmin(1), d.argmin(0)
+        mutual = back[nn] == np.arange(len(a_pts))
+        moved = a_pts @ T[:3, :3].T + T[:3, 3]
+        return int(np.sum(mutual & (np.linalg.norm(moved - b_pts[nn], axis=1) < tol)))
+
+    (a, pa), (b, pb) = _visit(9, 0, 8, "slight"), _visit(9, 1, 8, "slight")  # own scale, frame, priors
+    T = pa @ np.linalg.inv(pb)  # visit b's prior frame -> visit a's
+    tol = 0.15 * np.cbrt(np.linalg.det(pa[:3, :3]))  # 15 cm
+    fa, fb = (keypoints.floor_features(s.images, s.depth, s.intrinsic, s.cam_to_world, ~s.gt.dynamic_mask, 256)
+              for s in (a, b))
+    assert fa.valid.sum() > 100 and fb.valid.sum() > 100
+    np.testing.assert_allclose(np.linalg.norm(fa.desc[fa.valid], axis=1), 1.0, atol=1e-5)
+    floor = mutual_right(fb.points[fb.valid], fb.desc[fb.valid], fa.points[fa.valid], fa.desc[fa.valid], T, tol)
+
+    def image_keypoints(s):  # the perspective images' SIFT, lifted (the memory's image keypoints)
+        f = keypoints.detect_sequence(s.images, ~s.gt.dynamic_mask, 32, contrast_threshold=0.01)
+        kp = memory.lift_keypoints(f.uv, f.desc, f.valid, jnp.asarray(s.depth), s.intrinsic, s.cam_to_world, 256)
+        return np.asarray(kp.points)[np.asarray(kp.valid)], np.asarray(kp.desc)[np.asarray(kp.valid)]
+
+    image = mutual_right(*image_keypoints(b), *image_keypoints(a), T, tol)
+    assert floor >= 10 and floor > 2 * image, (floor, image)
+
+
+def test_floor_features_without_a_floor_and_bad_input():
+    from cm3d.ops import keypoints
+
+    S, H, W = 2, 24, 32
+    K = np.array([[30.0, 0, 16], [0, 30, 12], [0, 0, 1]])
+    images = np.random.default_rng(0).integers(0, 255, (S, H, W, 3), dtype=np.uint8)
+    wall = np.full((S, H, W), 2.0)  # a wall facing the camera: no plane within max_tilt of up
+    poses = np.broadcast_to(np.eye(4), (S, 4, 4))
+    f = keypoints.floor_features(images, wall, np.broadcast_to(K, (S, 3, 3)), poses, None, 16)
+    assert f.points.shape == (16, 3) and f.desc.shape == (16, 128) and not f.valid.any()
+    with pytest.raises(ValueError, match="cam_to_world"):
+        keypoints.floor_features(images, wall, np.broadcast_to(K, (S, 3, 3)), np.eye(4), None, 16)
+    with pytest.raises(ValueError, match="singular"):
+        keypoints.floor_features(images, wall, np.zeros((S, 3, 3)), poses, None, 16)
+    with pytest.raises(ValueError, match="images"):
+        keypoints.floor_features(images.astype(np.float32), wall, np.broadcast_to(K, (S, 3, 3)), poses, None, 16)

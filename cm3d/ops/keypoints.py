@@ -134,12 +134,12 @@ def detect_features(image: np.ndarray, mask: np.ndarray | None = None, capacity:
     order = np.argsort([-k.response for k in kps], kind="stable")[:capacity]
     n = len(order)
     if cfg.detector == "sift":
-        d = desc[order].astype(np.float32)
-        d = np.sqrt(d / np.maximum(d.sum(1, keepdims=True), 1e-12))
+        d = _rootsift(desc[order])
     else:
         d = (np.unpackbits(desc[order], axis=1).astype(np.float32) * 2 - 1) / 16.0
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
     uv[:n] = [kps[i].pt for i in order]
-    out[:n] = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    out[:n] = d
     valid[:n] = True
     return Features(uv, out, valid)
 
@@ -154,3 +154,213 @@ def detect_sequence(images: np.ndarray, masks: np.ndarray | None = None, capacit
         return Features(np.zeros((0, capacity, 2), np.float32), np.zeros((0, capacity, D), np.float32),
                         np.zeros((0, capacity), bool))
     return Features(*(np.stack([getattr(f, k) for f in feats]) for k in ("uv", "desc", "valid")))
+
+
+# ----------------------------------------------------------------------------------------------
+# Floor orthophoto keypoints
+
+
+@dataclasses.dataclass(frozen=True)
+class FloorConfig:
+    """Options of :func:`floor_features`.
+
+    pixels_per_height: orthophoto resolution, the first camera's height above the floor divided by
+    this (a visit's own unit: resolution follows the scene, not the prior's unknown scale);
+    plane_tolerance: a pixel is floor when its depth is within this relative error of the plane's;
+    max_tilt: degrees between the floor normal and the first camera's up (``up_prior``, OpenCV -y);
+    ransac_iterations / stride: plane fit on every ``stride``-th pixel; max_canvas: orthophoto side
+    cap (pixels; the resolution is coarsened to fit); contrast_threshold: SIFT's."""
+
+    pixels_per_height: float = 60.0
+    plane_tolerance: float = 0.05
+    max_tilt: float = 30.0
+    ransac_iterations: int = 256
+    stride: int = 4
+    max_canvas: int = 1024
+    contrast_threshold: float = 0.01
+    up_prior: tuple[float, float, float] = (0.0, -1.0, 0.0)
+
+
+@struct.dataclass
+class FloorFeatures:
+    """3D keypoints on the floor, strongest first: points (N, 3) in the frame of ``cam_to_world``,
+    desc (N, 128) RootSIFT of the orthophoto, valid (N,) bool; N = capacity."""
+
+    points: np.ndarray
+    desc: np.ndarray
+    valid: np.ndarray
+
+
+def _rootsift(desc: np.ndarray) -> np.ndarray:
+    """RootSIFT (L1-normalise, square root), then unit L2."""
+    d = np.sqrt(desc.astype(np.float32) / np.maximum(desc.sum(1, keepdims=True), 1e-12))
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+
+
+def _check_views(images, depth, K, cam_to_world, static):
+    images, depth = np.asarray(images), np.asarray(depth, np.float64)
+    K, cam_to_world = np.asarray(K, np.float64), np.asarray(cam_to_world, np.float64)
+    if depth.ndim != 3:
+        raise ValueError(f"depth: expected (S, H, W), got {depth.shape}")
+    S, H, W = depth.shape
+    for name, a, shape in (("images", images, (S, H, W, 3)), ("K", K, (S, 3, 3)), ("cam_to_world", cam_to_world, (S, 4, 4))):
+        if a.shape != shape:
+            raise ValueError(f"{name}: expected {shape}, got {a.shape}")
+    if images.dtype != np.uint8:
+        raise ValueError(f"images: expected uint8, got {images.dtype}")
+    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(cam_to_world))):
+        raise ValueError("K / cam_to_world: non-finite values")
+    if np.any(np.abs(np.linalg.det(K)) < 1e-12):
+        raise ValueError("K: singular intrinsics")
+    static = np.ones((S, H, W), bool) if static is None else np.asarray(static, bool)
+    if static.shape != (S, H, W):
+        raise ValueError(f"static: expected {(S, H, W)}, got {static.shape}")
+    depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0)
+    return images, depth, K, cam_to_world, static
+
+
+def _pixel_rays(K, H, W, stride=1):
+    v, u = np.mgrid[0:H:stride, 0:W:stride]
+    return np.stack([u, v, np.ones_like(u)], -1).astype(np.float64) @ np.linalg.inv(K).T  # (h, w, 3), z = 1
+
+
+def floor_plane(depth, K, cam_to_world, static=None, cfg: FloorConfig = FloorConfig(), seed: int = 0):
+    """The floor ``(n, c)`` (unit normal pointing up, ``n . x + c = 0``, ``c`` > 0: the first camera's
+    height above it) in the frame of ``cam_to_world``, or None when no plane qualifies.
+
+    RANSAC over the static pixels' points (every ``cfg.stride``-th pixel): planes whose normal is
+    within ``cfg.max_tilt`` of the first camera's up and which lie below the first camera; the one
+    with most points within 1 % of the camera height wins, refitted by least squares on its inliers."""
+    depth, K, cam_to_world = np.asarray(depth, np.float64), np.asarray(K, np.float64), np.asarray(cam_to_world, np.float64)
+    S, H, W = depth.shape
+    st = cfg.stride
+    static = np.ones((S, H, W), bool) if static is None else np.asarray(static, bool)
+    pts = []
+    for s in range(S):
+        d = depth[s, ::st, ::st]
+        ok = static[s, ::st, ::st] & np.isfinite(d) & (d > 0)
+        X = _pixel_rays(K[s], H, W, st)[ok] * d[ok][:, None]
+        pts.append(X @ cam_to_world[s, :3, :3].T + cam_to_world[s, :3, 3])
+    P = np.concatenate(pts) if pts else np.zeros((0, 3))
+    if len(P) < 3:
+        return None
+    up = cam_to_world[0, :3, :3] @ np.asarray(cfg.up_prior, np.float64)
+    up /= np.linalg.norm(up)
+    origin = cam_to_world[0, :3, 3]
+    rng = np.random.default_rng(seed)
+    tri = rng.integers(0, len(P), (cfg.ransac_iterations, 3))
+    n = np.cross(P[tri[:, 1]] - P[tri[:, 0]], P[tri[:, 2]] - P[tri[:, 0]])
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    n = np.where(norm > 1e-12, n / np.maximum(norm, 1e-12), 0.0)
+    n *= np.where(n @ up < 0, -1.0, 1.0)[:, None]
+    c = -np.einsum("ij,ij->i", n, P[tri[:, 0]])
+    h = n @ origin + c  # first camera's height above each plane
+    ok = (n @ up >= np.cos(np.radians(cfg.max_tilt))) & (h > 0)
+    if not ok.any():
+        return None
+    n, c, h = n[ok], c[ok], h[ok]
+    count = np.zeros(len(n), np.int64)
+    for i in range(0, len(n), 32):  # (planes x points) in blocks
+        count[i:i + 32] = (np.abs(P @ n[i:i + 32].T + c[i:i + 32]) < 0.01 * h[i:i + 32]).sum(0)
+    b = int(np.argmax(count))
+    if count[b] < 3:
+        return None
+    inl = P[np.abs(P @ n[b] + c[b]) < 0.015 * h[b]]
+    m = inl.mean(0)
+    nf = np.linalg.svd(inl - m, full_matrices=False)[2][2]
+    nf *= 1.0 if nf @ up >= 0 else -1.0
+    cf = -float(nf @ m)
+    if nf @ origin + cf <= 0:
+        return None
+    return nf, cf
+
+
+def floor_orthophoto(images, depth, K, cam_to_world, static, plane, cfg: FloorConfig = FloorConfig()):
+    """A top-down mosaic of the floor ``plane`` (from :func:`floor_plane`): ``(image (h, w, 3) uint8,
+    valid (h, w) bool, to_world (3, 3))`` with ``to_world`` taking homogeneous orthophoto pixels
+    ``(u, v, 1)`` to points on the plane (columns: u axis, v axis, origin).
+
+    Every frame's floor pixels (static, depth within ``plane_tolerance`` of the plane's along the ray)
+    are warped by the plane's homography; where frames overlap the closest camera's view is kept (the
+    sharpest). A view of the floor from another place and direction gives the same picture up to a
+    2D rotation, translation and scale, which SIFT is invariant to: unlike the perspective images."""
+    import cv2
+
+    images, depth, K, cam_to_world, static = _check_views(images, depth, K, cam_to_world, static)
+    S, H, W = depth.shape
+    n, c = np.asarray(plane[0], np.float64), float(plane[1])
+    h = n @ cam_to_world[0, :3, 3] + c
+    e1 = np.cross(n, cam_to_world[0, :3, 2])  # u axis: across the first camera's view
+    if np.linalg.norm(e1) < 1e-6:
+        e1 = np.cross(n, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    o = cam_to_world[0, :3, 3] - h * n  # the first camera's foot on the floor
+    # the floor pixels of every frame and their plane coordinates
+    masks, ab = [], []
+    for s in range(S):
+        R, C = cam_to_world[s, :3, :3], cam_to_world[s, :3, 3]
+        ray = _pixel_rays(K[s], H, W) @ R.T  # world directions, camera z = 1
+        den = ray @ n
+        t = -(n @ C + c) / np.where(np.abs(den) > 1e-12, den, np.nan)  # plane depth along each ray
+        with np.errstate(invalid="ignore"):
+            m = static[s] & (depth[s] > 0) & (t > 0) & (np.abs(depth[s] / t - 1) < cfg.plane_tolerance)
+        masks.append(m)
+        X = C + ray[m] * t[m][:, None] - o
+        ab.append(np.stack([X @ e1, X @ e2], -1))
+    ab = np.concatenate(ab)
+    if len(ab) < 16:
+        return np.zeros((1, 1, 3), np.uint8), np.zeros((1, 1), bool), np.eye(3)
+    lo, hi = np.quantile(ab, 0.002, axis=0), np.quantile(ab, 0.998, axis=0)
+    delta = max(h / cfg.pixels_per_height, float((hi - lo).max()) / cfg.max_canvas)
+    w, hh = int((hi[0] - lo[0]) / delta) + 1, int((hi[1] - lo[1]) / delta) + 1
+    A = np.array([[delta, 0, lo[0]], [0, delta, lo[1]], [0, 0, 1.0]])  # orthophoto pixel -> (a, b, 1)
+    to_world = np.stack([e1, e2, o], 1) @ A  # (3, 3): (u, v, 1) -> point
+    vv, uu = np.mgrid[0:hh, 0:w]
+    grid = np.stack([uu, vv, np.ones_like(uu)], -1).astype(np.float64) @ to_world.T  # (hh, w, 3) points
+    best = np.full((hh, w), np.inf)
+    out = np.zeros((hh, w, 3), np.uint8)
+    for s in range(S):
+        R, C = cam_to_world[s, :3, :3], cam_to_world[s, :3, 3]
+        Hm = K[s] @ np.concatenate([R.T @ to_world[:, :2], (R.T @ (to_world[:, 2] - C))[:, None]], 1)
+        Hm = Hm / Hm[2, 2] if abs(Hm[2, 2]) > 1e-12 else Hm
+        flags = cv2.WARP_INVERSE_MAP
+        img = cv2.warpPerspective(images[s], Hm, (w, hh), flags=flags | cv2.INTER_LINEAR)
+        m = cv2.warpPerspective(masks[s].astype(np.uint8), Hm, (w, hh), flags=flags | cv2.INTER_NEAREST) > 0
+        rel = grid - C
+        dist = np.linalg.norm(rel, axis=-1)
+        take = m & (rel @ R[:, 2] > 0) & (dist < best)  # in front of the camera, closest so far
+        best[take], out[take] = dist[take], img[take]
+    return out, np.isfinite(best), to_world
+
+
+def floor_features(images, depth, K, cam_to_world, static=None, capacity: int = 512,
+                   cfg: FloorConfig = FloorConfig(), seed: int = 0) -> FloorFeatures:
+    """SIFT keypoints of the floor orthophoto (:func:`floor_orthophoto` of :func:`floor_plane`) as 3D
+    points in the frame of ``cam_to_world`` with RootSIFT descriptors, the ``capacity`` strongest first.
+
+    images (S, H, W, 3) uint8, depth (S, H, W) (<= 0 or non-finite: no depth), K (S, 3, 3),
+    cam_to_world (S, 4, 4), static (S, H, W) bool (None: all). Host side (NumPy + OpenCV). No floor
+    found (no plane within ``cfg.max_tilt`` of up, below the first camera): no valid keypoint."""
+    import cv2
+
+    if capacity < 1:
+        raise ValueError(f"capacity: must be >= 1, got {capacity}")
+    images, depth, K, cam_to_world, static = _check_views(images, depth, K, cam_to_world, static)
+    pts, out, valid = np.zeros((capacity, 3), np.float32), np.zeros((capacity, 128), np.float32), np.zeros(capacity, bool)
+    plane = floor_plane(depth, K, cam_to_world, static, cfg, seed)
+    if plane is None:
+        return FloorFeatures(pts, out, valid)
+    img, ok, to_world = floor_orthophoto(images, depth, K, cam_to_world, static, plane, cfg)
+    mask = cv2.erode(ok.astype(np.uint8) * 255, np.ones((5, 5), np.uint8))
+    det = cv2.SIFT_create(contrastThreshold=cfg.contrast_threshold)
+    kps, desc = det.detectAndCompute(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY), mask)
+    if desc is None or len(kps) == 0:
+        return FloorFeatures(pts, out, valid)
+    order = np.argsort([-k.response for k in kps], kind="stable")[:capacity]
+    uv = np.array([kps[i].pt for i in order], np.float64)
+    k = len(order)
+    pts[:k] = np.concatenate([uv, np.ones((k, 1))], 1) @ to_world.T
+    out[:k] = _rootsift(desc[order])
+    valid[:k] = True
+    return FloorFeatures(pts, out, valid)
