@@ -6,8 +6,10 @@ map's own frame and scale), its 3D descriptor ``cloud_desc`` and up to ``max_key
 descriptors ``kf_desc`` with hash codes ``kf_codes``. The *global feature table* is the flat view
 ``kf_desc.reshape(max_maps * max_keyframes, dim)`` with ``map_id = row // max_keyframes``
 (:func:`global_table`), so it never goes out of sync with the maps. Each map also holds up to
-``max_keypoints`` 3D keypoints (local RootSIFT descriptors lifted to the map frame); its points
-are kept sorted by grid cell (:func:`sort_by_cell`) for neighbour search by binary search.
+``max_keypoints`` 3D keypoints (local RootSIFT descriptors lifted to the map frame) and up to
+``max_floor_keypoints`` *floor* keypoints (SIFT of a top-down orthophoto of the floor,
+:func:`cm3d.ops.keypoints.floor_features`: viewpoint-normalised, matched only among themselves); its
+points are kept sorted by grid cell (:func:`sort_by_cell`) for neighbour search by binary search.
 
 Recognition (:func:`identify`, pure and vmappable over queries): hashed 2D :func:`recall` of
 ``top_k`` candidates -> keypoint matching + Sim(3) RANSAC per candidate (3-point hypotheses, and
@@ -54,7 +56,8 @@ MAGIC = b"CM3DMEM\x00"
 GRID_CELL = 1.5  # a map's points are stored sorted by grid cells of this many map voxels (see
 # sort_by_cell); the verifying ICP searches the 27 cells around a point, so its correspondence
 # distance is one cell
-FORMAT_VERSION = 2  # 2: 3D keypoints (kp_points, kp_desc, kp_valid)
+FORMAT_VERSION = 3  # 2: 3D keypoints (kp_points, kp_desc, kp_valid); 3: floor keypoints (floor_kp_*)
+READ_VERSIONS = (2, 3)  # a version-2 file loads with no floor keypoints (max_floor_keypoints = 0)
 
 
 DESCRIPTOR_3D_DIMS = {"handcrafted": descriptors.CLOUD_DIM, "pointnet2": 512}
@@ -113,6 +116,7 @@ class MemoryConfig:
     normal_radius: float = 0.2  # neighbourhood cell for map normals (map units: VGGT-normalised)
     min_inliers: int = 38  # verification: absolute number of ICP inliers
     max_keypoints: int = 512  # 3D keypoints (local descriptors lifted to the map frame) per map
+    max_floor_keypoints: int = 0  # floor orthophoto keypoints per map (ops.keypoints.floor_features; 0: none)
     keypoint_dim: int = 128  # local descriptor size (RootSIFT)
     ratio: float = 0.85  # keypoint matching: Lowe ratio against the best match elsewhere in 3D
     ransac_hypotheses: int = 256  # Sim(3) RANSAC: 3-point hypotheses per candidate
@@ -150,14 +154,15 @@ class MemoryConfig:
     # scale_range). A logistic regression on standardised features fitted on the tuning split of
     # experiments/memory_recall.py (--fit-acceptance prints these numbers); the operating threshold is folded
     # into accept_bias. Empty: the thresholds decide. The defaults: `memory_recall.py --fit-acceptance` (200 maps,
-    # 1024 map keypoints, top_k=2, icp_points=512: the experiment's configuration).
-    accept_weights: tuple[float, ...] = (0.32529, 0, 0, 0.4599, 0.66647, 0.51604, 0.5081, 0.32989, 0.4344, 0,
-                                         -0.18415, -0.40978, 0.60611, 0, 0)
-    accept_mean: tuple[float, ...] = (0.71044, 0, 0, 2.89546, 1.82379, 2.31851, 2.16432, 1.45928, 0.49133, 0, 0.69508,
-                                      0.6373, 0.73721, 0, 0)
-    accept_scale: tuple[float, ...] = (0.29585, 1, 1, 1.01416, 1.3848, 0.85696, 1.08522, 1.3335, 0.29737, 1, 0.24183,
-                                       0.15873, 0.24674, 1, 1)
-    accept_bias: float = 0.68126
+    # 1024 map keypoints + 512 floor keypoints, top_k=2, icp_points=384, cluster_separation=1.5: the experiment's
+    # configuration).
+    accept_weights: tuple[float, ...] = (0.3191, 0, 0, 0.52764, 0.63999, 0.51345, 0.57663, 0.37761, 0.28086, 0,
+                                         -0.30145, -0.31026, 0.5949, 0, 0)
+    accept_mean: tuple[float, ...] = (0.7018, 0, 0, 3.40222, 2.47035, 2.67332, 2.64383, 1.65895, 0.50891, 0, 0.70902,
+                                      0.62245, 0.72832, 0, 0)
+    accept_scale: tuple[float, ...] = (0.30617, 1, 1, 0.84247, 1.18459, 0.94767, 1.01166, 1.51742, 0.29364, 1, 0.251,
+                                       0.13565, 0.24409, 1, 1)
+    accept_bias: float = 0.7019
 
     def __post_init__(self):
         if self.descriptor_3d not in DESCRIPTOR_3D_DIMS:
@@ -176,6 +181,8 @@ class MemoryConfig:
         if self.fallback_yaws < 0 or self.fallback_grid < 8 or self.fallback_points < 3 or self.fallback_refine < 1:
             raise ValueError("MemoryConfig: fallback_yaws must be >= 0, fallback_grid >= 8, fallback_points >= 3, "
                              "fallback_refine >= 1")
+        if self.max_floor_keypoints < 0:
+            raise ValueError(f"MemoryConfig.max_floor_keypoints: must be >= 0, got {self.max_floor_keypoints}")
         if self.pose_candidates < 1:
             raise ValueError(f"MemoryConfig.pose_candidates: must be >= 1, got {self.pose_candidates}")
         if self.upright_hypotheses < 0:
@@ -217,6 +224,9 @@ class MemoryBank:
     kp_points: jax.Array  # (M, N, 3) float32: 3D keypoints in the map frame (N = max_keypoints)
     kp_desc: jax.Array  # (M, N, Dk) float32: their unit local descriptors
     kp_valid: jax.Array  # (M, N) bool
+    floor_kp_points: jax.Array  # (M, F, 3) float32: floor keypoints (F = max_floor_keypoints), map frame
+    floor_kp_desc: jax.Array  # (M, F, Dk) float32
+    floor_kp_valid: jax.Array  # (M, F) bool
 
     @property
     def num_maps(self) -> jax.Array:
@@ -239,6 +249,9 @@ def empty(cfg: MemoryConfig = MemoryConfig()) -> MemoryBank:
         kp_points=jnp.zeros((M, cfg.max_keypoints, 3), jnp.float32),
         kp_desc=jnp.zeros((M, cfg.max_keypoints, cfg.keypoint_dim), jnp.float32),
         kp_valid=jnp.zeros((M, cfg.max_keypoints), bool),
+        floor_kp_points=jnp.zeros((M, cfg.max_floor_keypoints, 3), jnp.float32),
+        floor_kp_desc=jnp.zeros((M, cfg.max_floor_keypoints, cfg.keypoint_dim), jnp.float32),
+        floor_kp_valid=jnp.zeros((M, cfg.max_floor_keypoints), bool),
     )
 
 
@@ -300,8 +313,8 @@ def _fit_keypoints(kp: "Keypoints | None", capacity: int, dim: int) -> Keypoints
 
 @struct.dataclass
 class MapEntry:
-    """One map's contents, already at the bank's capacities (P points, K keyframes); ``keypoints``
-    may have any capacity (padded or cut to the bank's when stored) or be None (no keypoints)."""
+    """One map's contents, already at the bank's capacities (P points, K keyframes); ``keypoints`` and
+    ``floor_keypoints`` may have any capacity (padded or cut to the bank's when stored) or be None."""
 
     points: jax.Array  # (P, 3)
     normals: jax.Array  # (P, 3)
@@ -313,6 +326,7 @@ class MapEntry:
     cloud_desc: jax.Array  # (D3,)
     voxel_size: jax.Array  # ()
     keypoints: Keypoints | None = None  # (Nq,) 3D keypoints in the entry's frame
+    floor_keypoints: Keypoints | None = None  # (Fq,) floor orthophoto keypoints (ops.keypoints.floor_features)
 
 
 def insert_map(bank: MemoryBank, entry: MapEntry) -> tuple[MemoryBank, jax.Array]:
@@ -323,6 +337,7 @@ def insert_map(bank: MemoryBank, entry: MapEntry) -> tuple[MemoryBank, jax.Array
     ok = free[slot]
     codes = descriptors.hash_codes(entry.kf_desc, bank.planes)
     kp = _fit_keypoints(entry.keypoints, bank.kp_valid.shape[1], bank.kp_desc.shape[2])
+    fkp = _fit_keypoints(entry.floor_keypoints, bank.floor_kp_valid.shape[1], bank.floor_kp_desc.shape[2])
     vs = jnp.maximum(jnp.asarray(entry.voxel_size, jnp.float32), 1e-12)
     points, point_valid, normals, conf, colors = sort_by_cell(
         jnp.asarray(entry.points, jnp.float32), jnp.asarray(entry.point_valid, bool), vs * GRID_CELL,
@@ -339,7 +354,8 @@ def insert_map(bank: MemoryBank, entry: MapEntry) -> tuple[MemoryBank, jax.Array
         kf_valid=put(bank.kf_valid, entry.kf_valid), map_valid=put(bank.map_valid, jnp.bool_(True)),
         visits=put(bank.visits, jnp.int32(1)), voxel_size=put(bank.voxel_size, entry.voxel_size),
         kp_points=put(bank.kp_points, kp.points), kp_desc=put(bank.kp_desc, kp.desc),
-        kp_valid=put(bank.kp_valid, kp.valid),
+        kp_valid=put(bank.kp_valid, kp.valid), floor_kp_points=put(bank.floor_kp_points, fkp.points),
+        floor_kp_desc=put(bank.floor_kp_desc, fkp.desc), floor_kp_valid=put(bank.floor_kp_valid, fkp.valid),
     )
     return new, jnp.where(ok, slot, -1).astype(jnp.int32)
 
@@ -515,11 +531,22 @@ def _entry_from_points(points, colors, conf, valid, kf_desc, kf_valid, voxel_siz
                     cloud_desc=cloud_descriptor(vox.points, vox.valid, cfg), voxel_size=vs)
 
 
+def _clean_keypoints(kp: Keypoints | None) -> Keypoints | None:
+    """Keypoints with non-finite points or descriptors marked invalid (and zeroed), float32."""
+    if kp is None:
+        return None
+    ok = jnp.asarray(kp.valid, bool) & jnp.all(jnp.isfinite(kp.points), -1) & jnp.all(jnp.isfinite(kp.desc), -1)
+    return Keypoints(jnp.where(ok[:, None], kp.points, 0.0).astype(jnp.float32),
+                     jnp.where(ok[:, None], kp.desc, 0.0).astype(jnp.float32), ok)
+
+
 def build_entry(cloud: SequenceCloud, kf_desc, kf_valid, cfg: MemoryConfig,
-                keypoints: Keypoints | None = None, min_support: float = 0.0) -> MapEntry:
+                keypoints: Keypoints | None = None, min_support: float = 0.0,
+                floor_keypoints: Keypoints | None = None) -> MapEntry:
     """A new map from a sequence: adaptive voxel size from the scene extent, mean point, colour and
     confidence per voxel, PCA normals, the 3D descriptor, the keyframe descriptors and (optional)
-    the sequence's 3D keypoints (:func:`lift_keypoints`, same frame as ``cloud``).
+    the sequence's 3D keypoints (:func:`lift_keypoints`, same frame as ``cloud``) and (optional) its
+    floor keypoints (:func:`cm3d.ops.keypoints.floor_features` on the same priors, as :class:`Keypoints`).
 
     ``min_support`` (a share, 0 = keep all): voxels with fewer samples than this share of the median
     voxel's are dropped. A map is capacity-bound, so its voxels are coarse (0.09-0.13 m at 384x512)
@@ -531,11 +558,7 @@ def build_entry(cloud: SequenceCloud, kf_desc, kf_valid, cfg: MemoryConfig,
     vs = adaptive_voxel_size(cloud.points, cloud.valid, cfg.voxel_resolution)
     entry = _entry_from_points(cloud.points, cloud.colors, cloud.conf, cloud.valid, kf_desc, kf_valid, vs, cfg,
                                min_support)
-    if keypoints is not None:
-        ok = keypoints.valid & jnp.all(jnp.isfinite(keypoints.points), -1) & jnp.all(jnp.isfinite(keypoints.desc), -1)
-        keypoints = Keypoints(jnp.where(ok[:, None], keypoints.points, 0.0).astype(jnp.float32),
-                              jnp.where(ok[:, None], keypoints.desc, 0.0).astype(jnp.float32), ok)
-    return entry.replace(keypoints=keypoints)
+    return entry.replace(keypoints=_clean_keypoints(keypoints), floor_keypoints=_clean_keypoints(floor_keypoints))
 
 
 @struct.dataclass
@@ -898,7 +921,8 @@ def icp_sim3(src, src_valid, dst, dst_valid, init, distance, iterations: int, ce
     return T, count, fitness, rmse, j, inl
 
 
-def _keypoint_stage(bank: MemoryBank, m, query: Keypoints, cluster, frame_q, sep_q, cfg: MemoryConfig, key):
+def _keypoint_stage(bank: MemoryBank, m, query: Keypoints, floor: Keypoints | None, cluster, frame_q, sep_q,
+                    cfg: MemoryConfig, key):
     """Match the query's keypoints with map ``m``'s and fit Sim(3) by RANSAC: (T (G, 4, 4), scale
     (G,), strict matches, distinct inliers (G,)), one pose per hypothesis generator (G = 1, or 2 with
     ``cfg.upright_hypotheses``: the triangle RANSAC's, then the upright pairs'). Triangle hypotheses
@@ -909,21 +933,28 @@ def _keypoint_stage(bank: MemoryBank, m, query: Keypoints, cluster, frame_q, sep
     of the query. With ``cfg.upright_hypotheses`` a second consensus
     draws 2-point hypotheses (:func:`upright_pairs`) from the strict *and* loose matches, given the
     query's upright frame ``frame_q`` and the map's (both :func:`upright_frame` of :func:`up_axis`),
-    scored the same way; pairs closer than ``sep_q`` (query units: one cluster) are not drawn."""
+    scored the same way; pairs closer than ``sep_q`` (query units: one cluster) are not drawn.
+    ``floor`` (None: none): the query's floor keypoints, matched with the map's floor keypoints only
+    (another kind of descriptor); their matches join the image keypoints' (``cluster`` covers both,
+    image keypoints first)."""
     vs = jnp.maximum(bank.voxel_size[m], 1e-12)
     thr = cfg.ransac_distance * vs
-    mk = Keypoints(bank.kp_points[m], bank.kp_desc[m], bank.kp_valid[m])
-    d2 = _descriptor_d2(query, mk)
-    j, best, mutual, ratio_ok = _nearest_descriptors(d2, mk.points, cfg.ratio, thr)  # (match_keypoints)
-    strict = query.valid & mutual & ratio_ok
-    n = jnp.arange(d2.shape[0])
-    ok = strict | (query.valid & mutual & (best < cfg.loose_descriptor**2))
+    kinds = [(query, Keypoints(bank.kp_points[m], bank.kp_desc[m], bank.kp_valid[m]))]
+    if floor is not None:
+        kinds.append((floor, Keypoints(bank.floor_kp_points[m], bank.floor_kp_desc[m], bank.floor_kp_valid[m])))
+    parts = []
+    for q, mk in kinds:  # (match_keypoints per kind)
+        j, best, mutual, ratio_ok = _nearest_descriptors(_descriptor_d2(q, mk), mk.points, cfg.ratio, thr)
+        parts.append((q.points, mk.points[j], q.valid & mutual & ratio_ok, q.valid & mutual, best))
+    src, dst, strict, mutual, best = (jnp.concatenate(x) for x in zip(*parts))
+    n = jnp.arange(src.shape[0])
+    ok = strict | (mutual & (best < cfg.loose_descriptor**2))
     rank = jnp.where(ok, best, jnp.inf)
     tops = ok & (rank <= jax.ops.segment_min(rank, cluster, num_segments=n.shape[0])[cluster])
     first = jax.ops.segment_min(jnp.where(tops, n, n.shape[0]), cluster, num_segments=n.shape[0])
     rep = tops & (first[cluster] == n)  # one per cluster: its best match (ties: the first)
-    src, dst = query.points, mk.points[j]
-    sel = jnp.argsort(~rep, stable=True)[: min(cfg.ransac_scored, n.shape[0])]  # the scored matches, compacted
+    # the scored matches, compacted: the ransac_scored closest in descriptor space when there are more
+    sel = jnp.argsort(jnp.where(rep, best, jnp.inf), stable=True)[: min(cfg.ransac_scored, n.shape[0])]
     scored = (src[sel], dst[sel], rep[sel])
     gens = [triangle_hypotheses(src, dst, strict, key, cfg.ransac_hypotheses)]
     if cfg.upright_hypotheses:
@@ -1170,12 +1201,16 @@ def _fallback_stage(bank: MemoryBank, m, entry: MapEntry, frame_q, cfg: MemoryCo
 
 
 def _query_keypoints(entry: MapEntry, cfg: MemoryConfig):
-    """The query's keypoints (none: three invalid ones), their :func:`keypoint_clusters`, its upright
-    frame (:func:`upright_frame` of :func:`up_axis`) and the cluster separation (query units)."""
+    """The query's keypoints (none: three invalid ones), its floor keypoints (None when it has none or
+    the bank holds none: ``cfg.max_floor_keypoints == 0``), the :func:`keypoint_clusters` of both
+    (image keypoints first), its upright frame (:func:`upright_frame` of :func:`up_axis`) and the
+    cluster separation (query units)."""
     kp = _fit_keypoints(None, 3, cfg.keypoint_dim) if entry.keypoints is None else entry.keypoints
+    floor = entry.floor_keypoints if cfg.max_floor_keypoints > 0 else None
     sep = cfg.cluster_separation * jnp.maximum(jnp.asarray(entry.voxel_size, jnp.float32), 1e-12)
     frame = upright_frame(up_axis(entry.normals, entry.point_valid, cfg.up_prior, cfg.up_max_angle))
-    return kp, keypoint_clusters(kp.points, kp.valid, sep), frame, sep
+    both = kp if floor is None else jax.tree.map(lambda a, b: jnp.concatenate([a, b]), kp, floor)
+    return kp, floor, keypoint_clusters(both.points, both.valid, sep), frame, sep
 
 
 def verify(bank: MemoryBank, map_id, entry: MapEntry, cfg: MemoryConfig, key) -> Verification:
@@ -1236,10 +1271,10 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
         v = _decide(bank, cand[0], jnp.eye(4), jnp.ones(()), jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), None, cfg)
         return Identification(recall=r, candidate_inliers=jnp.zeros(cfg.top_k, jnp.int32), verification=v,
                               map_id=jnp.where(v.accepted, cand[0], -1))
-    qk, cluster, frame, sep = _query_keypoints(entry, cfg)
+    qk, qf, cluster, frame, sep = _query_keypoints(entry, cfg)
     keys = jax.random.split(key, cfg.top_k)
     Ts, scales, matches, inliers = jax.vmap(
-        lambda m, k: _keypoint_stage(bank, jnp.maximum(m, 0), qk, cluster, frame, sep, cfg, k))(cand, keys)
+        lambda m, k: _keypoint_stage(bank, jnp.maximum(m, 0), qk, qf, cluster, frame, sep, cfg, k))(cand, keys)
     best = jnp.where(cand >= 0, jnp.max(inliers, 1), -1)
     b = jnp.argmax(best)
     m = cand[b]
@@ -1369,9 +1404,14 @@ def update_map(bank: MemoryBank, map_id, entry: MapEntry, transform, cfg: Memory
                                                 vox.features)
     vox = vox.replace(points=vpts, valid=vvalid, features=vfeat)
     kf, kfv = _merge_keyframes(bank.kf_desc[m], bank.kf_valid[m], entry.kf_desc, entry.kf_valid)
-    qk = _fit_keypoints(entry.keypoints, bank.kp_valid.shape[1], bank.kp_desc.shape[2])
-    qk = qk.replace(points=jnp.where(qk.valid[:, None], qk.points @ A.T + t, 0.0))
-    kp = _merge_keypoints(Keypoints(bank.kp_points[m], bank.kp_desc[m], bank.kp_valid[m]), qk)
+
+    def merged(new, points, desc, valid):  # the query's keypoints of one kind moved into the map and merged
+        new = _fit_keypoints(new, valid.shape[1], desc.shape[2])
+        new = new.replace(points=jnp.where(new.valid[:, None], new.points @ A.T + t, 0.0))
+        return _merge_keypoints(Keypoints(points[m], desc[m], valid[m]), new)
+
+    kp = merged(entry.keypoints, bank.kp_points, bank.kp_desc, bank.kp_valid)
+    fkp = merged(entry.floor_keypoints, bank.floor_kp_points, bank.floor_kp_desc, bank.floor_kp_valid)
     return bank.replace(
         points=bank.points.at[m].set(vox.points), normals=bank.normals.at[m].set(normals),
         conf=bank.conf.at[m].set(vox.features[:, 3]),
@@ -1381,7 +1421,8 @@ def update_map(bank: MemoryBank, map_id, entry: MapEntry, transform, cfg: Memory
         kf_desc=bank.kf_desc.at[m].set(kf), kf_codes=bank.kf_codes.at[m].set(descriptors.hash_codes(kf, bank.planes)),
         kf_valid=bank.kf_valid.at[m].set(kfv), visits=bank.visits.at[m].add(1), voxel_size=bank.voxel_size.at[m].set(vs),
         kp_points=bank.kp_points.at[m].set(kp.points), kp_desc=bank.kp_desc.at[m].set(kp.desc),
-        kp_valid=bank.kp_valid.at[m].set(kp.valid))
+        kp_valid=bank.kp_valid.at[m].set(kp.valid), floor_kp_points=bank.floor_kp_points.at[m].set(fkp.points),
+        floor_kp_desc=bank.floor_kp_desc.at[m].set(fkp.desc), floor_kp_valid=bank.floor_kp_valid.at[m].set(fkp.valid))
 
 
 @struct.dataclass
@@ -1431,7 +1472,8 @@ def _fields(bank: MemoryBank) -> dict[str, np.ndarray]:
 def save(bank: MemoryBank, path, cfg: MemoryConfig) -> None:
     """Write the bank atomically with a versioned header and a SHA-256 checksum."""
     arrays = _fields(bank)
-    for name in ("points", "normals", "conf", "cloud_desc", "kf_desc", "kp_points", "kp_desc"):
+    for name in ("points", "normals", "conf", "cloud_desc", "kf_desc", "kp_points", "kp_desc", "floor_kp_points",
+                 "floor_kp_desc"):
         bad = ~np.isfinite(arrays[name])
         if bad.any():
             raise ValueError(f"memory bank field {name!r} holds {int(bad.sum())} non-finite values; "
@@ -1461,8 +1503,9 @@ def load(path) -> tuple[MemoryBank, MemoryConfig]:
         header = json.loads(data[start: start + n])
     except (pystruct.error, json.JSONDecodeError, UnicodeDecodeError) as e:
         raise MemoryFileError(f"{path}: damaged header ({e})") from None
-    if header.get("version") != FORMAT_VERSION:
-        raise MemoryFileError(f"{path}: format version {header.get('version')}, this cm3d reads {FORMAT_VERSION}")
+    version = header.get("version")
+    if version not in READ_VERSIONS:
+        raise MemoryFileError(f"{path}: format version {version}, this cm3d reads {', '.join(map(str, READ_VERSIONS))}")
     payload = data[start + n:]
     if hashlib.sha256(payload).hexdigest() != header["sha256"]:
         raise MemoryFileError(f"{path}: checksum mismatch (truncated or altered file)")
@@ -1476,6 +1519,9 @@ def load(path) -> tuple[MemoryBank, MemoryConfig]:
         arrays[name] = jnp.asarray(np.frombuffer(payload[off: off + size], dtype).reshape(shape))
         off += size
     spec = jax.eval_shape(lambda: empty(cfg))
+    if version == 2:  # no floor keypoints yet (the config has max_floor_keypoints = 0)
+        arrays.update({k: jnp.zeros(getattr(spec, k).shape, getattr(spec, k).dtype)
+                       for k in ("floor_kp_points", "floor_kp_desc", "floor_kp_valid")})
     expected = {f.name: getattr(spec, f.name).shape for f in dataclasses.fields(spec)}
     if set(arrays) != set(expected) or any(arrays[k].shape != v for k, v in expected.items()):
         raise MemoryFileError(f"{path}: arrays do not match the stored config's capacities")

@@ -984,6 +984,9 @@ def _bank_config(bank: memory.MemoryBank, cfg: PipelineConfig) -> memory.MemoryC
     kp = getattr(bank, "kp_points", None)
     if kp is not None and kp.shape[1] != mc.max_keypoints:
         mc = dataclasses.replace(mc, max_keypoints=kp.shape[1])
+    fkp = getattr(bank, "floor_kp_points", None)
+    if fkp is not None and fkp.shape[1] != mc.max_floor_keypoints:
+        mc = dataclasses.replace(mc, max_floor_keypoints=fkp.shape[1])
     return mc
 
 

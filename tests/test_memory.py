@@ -1,8 +1,12 @@
 """Memory bank: pytree, capacity policy, hashed recall, persistence (atomic, checksummed)."""
 
+import dataclasses
 import functools
+import hashlib
+import json
 import os
 import signal
+import struct
 import subprocess
 import sys
 import textwrap
@@ -673,3 +677,75 @@ def test_acceptance_model_in_identify_equals_sklearn_on_its_features(visits):
     assert list(np.asarray(out.map_id) >= 0) == list(np.asarray(out.acceptance) >= 0)
     with pytest.raises(ValueError, match="accept_weights"):
         memory.MemoryConfig(accept_weights=(1.0, 2.0))
+
+
+def _floor_keypoints(rng, n, dim=128):
+    d = np.abs(rng.normal(size=(n, dim))).astype(np.float32)
+    return memory.Keypoints(rng.normal(size=(n, 3)).astype(np.float32), d / np.linalg.norm(d, axis=1, keepdims=True),
+                            np.arange(n) < n - 2)
+
+
+def test_floor_keypoints_round_trip_and_version_2_files_load(tmp_path):
+    cfg = dataclasses.replace(CFG, max_floor_keypoints=6)
+    rng = np.random.default_rng(0)
+    bank, m = _insert(memory.empty(cfg), _entry(0).replace(floor_keypoints=_floor_keypoints(rng, 9)))
+    assert bank.floor_kp_points.shape == (4, 6, 3) and int(bank.floor_kp_valid[m].sum()) == 6  # cut to capacity
+    memory.save(bank, tmp_path / "bank.cm3d", cfg)
+    back, cfg2 = memory.load(tmp_path / "bank.cm3d")
+    assert cfg2 == cfg
+    jax.tree.map(np.testing.assert_array_equal, back, bank)
+    # a version-2 file (before floor keypoints): loads with none
+    old = memory.empty(CFG)
+    arrays = {k: v for k, v in memory._fields(old).items() if not k.startswith("floor_kp_")}
+    payload = b"".join(np.ascontiguousarray(a).tobytes() for a in arrays.values())
+    conf = {k: v for k, v in dataclasses.asdict(CFG).items() if k != "max_floor_keypoints"}
+    header = json.dumps({"version": 2, "config": conf, "arrays": [[k, list(a.shape), a.dtype.str] for k, a in arrays.items()],
+                         "sha256": hashlib.sha256(payload).hexdigest()}).encode()
+    (tmp_path / "v2.cm3d").write_bytes(memory.MAGIC + struct.pack("<Q", len(header)) + header + payload)
+    b2, c2 = memory.load(tmp_path / "v2.cm3d")
+    assert c2 == CFG and b2.floor_kp_points.shape == (4, 0, 3)
+    jax.tree.map(np.testing.assert_array_equal, b2, old)
+
+
+def test_floor_keypoints_match_only_floor_keypoints():
+    """The same descriptors at the same points are matched as floor keypoints, never across kinds."""
+    cfg = dataclasses.replace(CFG, max_keypoints=8, max_floor_keypoints=8, min_keypoint_inliers=1)
+    rng = np.random.default_rng(1)
+    floor = _floor_keypoints(rng, 8)
+    query = _entry(0).replace(keypoints=None, floor_keypoints=floor)
+    as_floor = _insert(memory.empty(cfg), _entry(0).replace(floor_keypoints=floor))[0]
+    as_image = _insert(memory.empty(cfg), _entry(0).replace(keypoints=floor))[0]
+    key = jax.random.PRNGKey(0)
+    kcfg = dataclasses.replace(cfg, verification="keypoints")
+    assert int(memory.verify(as_floor, 0, query, kcfg, key).matches) == 6
+    assert int(memory.verify(as_image, 0, query, kcfg, key).matches) == 0
+    # update_map moves the query's floor keypoints into the map and merges them
+    T = np.diag([2.0, 2.0, 2.0, 1.0])
+    up = memory.update_map(as_image, 0, query, jnp.asarray(T, jnp.float32), cfg)
+    np.testing.assert_allclose(np.asarray(up.floor_kp_points[0][:6]), 2 * floor.points[:6], atol=1e-6)
+
+
+def test_floor_keypoints_alone_recall_a_revisit_with_the_right_pose():
+    """A revisit's floor orthophoto keypoints (no image keypoints) against the stored room's: the RANSAC
+    pose is the ground-truth similarity between the two visits' prior frames."""
+    from cm3d.data import synthetic
+    from cm3d.ops import keypoints
+
+    cfg = dataclasses.replace(VISIT_CFG, max_floor_keypoints=256, verification="keypoints", fallback_yaws=0)
+    world = synthetic.WorldConfig(height=120, width=160, supersample=1, fps=1.0)
+    entries, pfws = [], []
+    for visit in (0, 1):
+        entry, pfw = _visit_entry(2, visit)
+        seq = synthetic.generate(2, visit, VISIT_FRAMES, "slight", world)
+        f = keypoints.floor_features(seq.images, seq.depth, seq.intrinsic, seq.cam_to_world, ~seq.gt.dynamic_mask, 256)
+        entries.append(entry.replace(keypoints=None, floor_keypoints=memory.Keypoints(f.points, f.desc, f.valid)))
+        pfws.append(pfw)
+    bank, m = _insert(memory.empty(cfg), entries[0])
+    v = jax.jit(lambda b, e, k: memory.verify(b, 0, e, cfg, k))(bank, entries[1], jax.random.PRNGKey(0))
+    assert bool(v.accepted) and int(v.keypoint_inliers) >= 10
+    gt = pfws[0] @ np.linalg.inv(pfws[1])
+    T = np.asarray(v.transform)
+    s, s_gt = np.cbrt(np.linalg.det(T[:3, :3])), np.cbrt(np.linalg.det(gt[:3, :3]))
+    np.testing.assert_allclose(s, s_gt, rtol=0.05)
+    dR = (T[:3, :3] / s) @ (gt[:3, :3] / s_gt).T
+    assert np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))) < 3.0
