@@ -13,7 +13,9 @@ dynamic mask (the motion stage is evaluated elsewhere).
 
 Preparation (host, timed separately): image descriptors and keyframes, SIFT keypoints on static
 pixels (OpenCV) lifted to 3D with the prior depth and poses (a map keeps 1024, 32 per frame; a query
-256), static cloud, map entry. Queries
+256), *floor keypoints*: SIFT of a top-down orthophoto of the floor (:func:`cm3d.ops.keypoints.floor_features`:
+the floor plane fitted to the prior points, every frame's floor pixels warped onto it; a map keeps 512,
+a query 128; matched only among themselves), static cloud, map entry. Queries
 (jit, vmapped over a batch of prepared queries, CPU): hashed 2D recall of ``top_k`` candidates,
 keypoint matching + Sim(3) RANSAC per candidate (3-point hypotheses from the strict matches and
 2-point *upright* hypotheses, both frames' up axes estimated from floor/ceiling normals), the pose
@@ -42,8 +44,8 @@ Tables:
   50 test scenes below 100; at 200 maps also the accuracy counting only right poses;
 - ablation at 200 maps (test split): 2D only / 2D+3D keypoints (no ICP) / 2D+3D+ICP without the
   upright pairs / full with the AND of the tuned thresholds / full with the acceptance model (the
-  headline) / the previous capacities (512 map keypoints, 3 recall candidates; model refitted on the
-  tuning split; q/s ratio in the same process) / thresholds + the keypoint-free fallback
+  headline) / the previous configuration (no floor keypoints, cluster separation 2, 512 ICP points;
+  model refitted on the tuning split; q/s ratio in the same process) / thresholds + the keypoint-free fallback
   (``MemoryConfig.fallback_yaws``; its thresholds tuned on the tuning split by :func:`tune_fallback`
   with the keypoint thresholds fixed; off in the headline rows), and the 2D stage's recall@1/2/3 (the
   true map among the candidates: what verification can reach);
@@ -60,7 +62,8 @@ Tables:
 ``--quick`` (the smoke test): 3 stored rooms, 2 unseen, 6-frame visits, one bank size (3), no
 ablation or map update: it checks that the script runs, not the figures (its time is mostly
 compilation).
-Generated and prepared visits are cached in ``~/.cache/cm3d/memory_recall`` (``--no-cache``: off) with
+Generated and prepared visits are cached in ``~/.cache/cm3d/memory_recall`` (``--no-cache``: off), their
+floor keypoints in files of their own (``floor-*.npz``, ``FLOOR_CACHED`` strongest; ~1 s per visit), with
 *all* their lifted keypoints (``RAW_KP_PER_FRAME`` = 128 per frame, files ``raw-*.npz``): a keypoint
 capacity is a cut of that list (:func:`cut_keypoints`), so changing it re-renders nothing (the first
 full run renders ~600 visits: ~15-25 min of one core). Older files holding one capacity are still read
@@ -89,12 +92,16 @@ from cm3d.outputs import write_json
 
 WORLD = synthetic.WorldConfig(height=120, width=160, supersample=1, fps=1.0)
 CFG = memory.MemoryConfig(max_maps=200, max_points=4096, max_keyframes=16, max_keypoints=1024,
-                          voxel_resolution=40.0, pixel_stride=4, top_k=2, icp_points=512)
-QUERY_KEYPOINTS = 256
-# the previous capacities (stop 15), an ablation row: 512 map keypoints (16 per frame), 3 recall candidates
-PREVIOUS = dict(max_keypoints=512, top_k=3)
+                          max_floor_keypoints=512, voxel_resolution=40.0, pixel_stride=4, top_k=2, icp_points=384,
+                          cluster_separation=1.5)
+QUERY_KEYPOINTS = 256  # image keypoints of a query (a map: CFG.max_keypoints)
+QUERY_FLOOR_KEYPOINTS = 128  # floor keypoints of a query (a map: CFG.max_floor_keypoints)
+# the previous configuration (stop 16), an ablation row: no floor keypoints, its cluster separation and ICP points
+PREVIOUS = dict(max_floor_keypoints=0, cluster_separation=2.0, icp_points=512)
 KP_PER_FRAME = 64  # (the legacy cache files' detection capacity per frame; see RAW_KP_PER_FRAME)
 RAW_KP_PER_FRAME = 128  # SIFT keypoints per frame lifted and cached before the capacity cut (see load_visits)
+FLOOR = keypoints.FloorConfig()  # floor orthophoto keypoints (cm3d.ops.keypoints.floor_features)
+FLOOR_CACHED = 1024  # floor keypoints cached per visit (strongest first); a capacity is a prefix
 SIFT_CONTRAST = 0.01  # OpenCV's default 0.04 finds almost nothing on weakly textured rooms at 120x160
 KEYFRAME_THRESHOLD = 0.1
 LEVEL = "slight"
@@ -188,6 +195,37 @@ def cut_keypoints(v: Visit, capacity: int) -> Visit:
     return dataclasses.replace(v, entry=v.entry.replace(keypoints=cut))
 
 
+def floor_path(seed: int, visit: int, frames: int) -> Path:
+    """The cache file of a visit's floor keypoints (``FLOOR_CACHED``, strongest first)."""
+    key = _cache_key([seed, visit, frames, dataclasses.asdict(FLOOR), FLOOR_CACHED], RAW_KP_PER_FRAME, 4)
+    return CACHE / f"floor-{key}.npz"
+
+
+def floor_keypoints(seed: int, visit: int, frames: int, use_cache: bool) -> keypoints.FloorFeatures:
+    """A visit's floor orthophoto keypoints in its prior frame (:func:`cm3d.ops.keypoints.floor_features`
+    on the visit's images, prior depth and poses and ground-truth static mask), cached."""
+    path = floor_path(seed, visit, frames)
+    if use_cache and path.exists():
+        z = np.load(path, allow_pickle=False)
+        return keypoints.FloorFeatures(z["points"], z["desc"], z["valid"])
+    seq = synthetic.generate(seed, visit, frames, LEVEL, WORLD)
+    f = keypoints.floor_features(seq.images, seq.depth, seq.intrinsic, seq.cam_to_world, ~seq.gt.dynamic_mask,
+                                 FLOOR_CACHED, FLOOR, seed=seed)
+    if use_cache:
+        CACHE.mkdir(parents=True, exist_ok=True)
+        with atomic_write(path) as fh:
+            np.savez(fh, points=f.points, desc=f.desc, valid=f.valid)
+    return f
+
+
+def add_floor(v: Visit, f: keypoints.FloorFeatures, count: int) -> Visit:
+    """The visit with its first ``count`` floor keypoints as the entry's ``floor_keypoints``."""
+    if count <= 0:
+        return v
+    floor = memory.Keypoints(f.points[:count].astype(np.float32), f.desc[:count].astype(np.float32), f.valid[:count])
+    return dataclasses.replace(v, entry=v.entry.replace(floor_keypoints=floor))
+
+
 def _read(path: Path, capacity: int) -> Visit:
     z = np.load(path, allow_pickle=False)
     leaves = [z[f"leaf{i}"] for i in range(int(z["n"]))]
@@ -203,11 +241,15 @@ def _write(path: Path, v: Visit) -> None:
                  **{f"leaf{i}": a for i, a in enumerate(leaves)})
 
 
-def load_visits(specs, use_cache: bool, raw: bool = False) -> list[Visit]:
+def load_visits(specs, use_cache: bool, raw: bool = False, floor: int = 0) -> list[Visit]:
     """Prepared visits for (seed, visit, frames, capacity) specs, from the cache when present: the *raw*
     file (all lifted keypoints, :func:`raw_path`, cut to ``capacity``) when there is one, else the legacy
     file of that exact capacity (``KP_PER_FRAME`` per frame); a visit in neither is prepared and cached
-    raw. ``raw``: only raw files (a keypoint capacity sweep; missing ones are prepared)."""
+    raw. ``raw``: only raw files (a keypoint capacity sweep; missing ones are prepared). ``floor``: this
+    many floor keypoints (:func:`floor_keypoints`) appended after the ``capacity`` image keypoints."""
+    if floor > 0:
+        return [add_floor(v, floor_keypoints(*spec[:3], use_cache), floor)
+                for v, spec in zip(load_visits(specs, use_cache, raw), specs)]
     out = []
     for spec in specs:
         seed, visit, frames, capacity = spec
@@ -617,12 +659,15 @@ def main(argv=None):
     sizes = (3,) if quick else (1, 50, 100, 200)
     map_frames, query_frames = (6, 6) if quick else (32, 12)  # quick: one shape, fewer compilations
     map_kp = QUERY_KEYPOINTS if quick else CFG.max_keypoints
+    map_floor = QUERY_FLOOR_KEYPOINTS if quick else CFG.max_floor_keypoints
     use_cache = not args.no_cache and not quick
 
     t = time.perf_counter()
-    maps = load_visits([(s, 0, map_frames, map_kp) for s in range(n_maps)], use_cache)
-    revisits = load_visits([(s, 1, query_frames, QUERY_KEYPOINTS) for s in range(n_maps)], use_cache)
-    unseen = load_visits([(UNSEEN_SEED + s, 1, query_frames, QUERY_KEYPOINTS) for s in range(n_unseen)], use_cache)
+    maps = load_visits([(s, 0, map_frames, map_kp) for s in range(n_maps)], use_cache, floor=map_floor)
+    revisits = load_visits([(s, 1, query_frames, QUERY_KEYPOINTS) for s in range(n_maps)], use_cache,
+                           floor=QUERY_FLOOR_KEYPOINTS)
+    unseen = load_visits([(UNSEEN_SEED + s, 1, query_frames, QUERY_KEYPOINTS) for s in range(n_unseen)], use_cache,
+                         floor=QUERY_FLOOR_KEYPOINTS)
     t_data = time.perf_counter() - t
     prep = {k: np.mean([v.prep_s[k] for v in revisits + unseen]) for k in ("render", "features", "entry")}
     print(f"data: {n_maps} maps ({map_frames} frames), {n_maps} revisits + {n_unseen} unseen queries "
@@ -766,9 +811,9 @@ def main(argv=None):
             print(f"{'':>42} (test revisits only the fallback accepts: {rescued or 'none'}; q/s ratio to the "
                   f"thresholds row {qps_ref[mode] / qps_ref.get('thresholds', qps_ref['full']):.2f})")
             figures["fallback_qps_ratio"] = qps_ref[mode] / qps_ref.get("thresholds", qps_ref["full"])
-    if not quick:  # the previous capacities: map keypoints cut to 512 (a prefix), 3 candidates, model refitted
+    if not quick:  # the previous configuration: no floor keypoints (the bank ignores the entries'), model refitted
         prev_cfg = dataclasses.replace(full["cfg"], **PREVIOUS)
-        prev_maps = [cut_keypoints(v, PREVIOUS["max_keypoints"]) for v in maps]
+        prev_maps = maps
         fields = fit_acceptance(build_bank(prev_maps, prev_cfg), tuning_q, truth[~test], is_unseen[~test], prev_cfg,
                                 pose_ok, query_ids=tq)[0]
         prev_cfg = dataclasses.replace(prev_cfg, **(fields or {}))
@@ -776,7 +821,7 @@ def main(argv=None):
         posed_m = right_pose(prev_maps, [revisits[q] for q in mine], ids_m[mine], T_m[mine], truth[mine])
         acc, fa = float(np.mean(posed_m)), float(np.mean(ids_m[test_uns] >= 0))
         acc_map = float(np.mean(ids_m[mine] == truth[mine]))
-        name = f"previous: {PREVIOUS['max_keypoints']} map keypoints, top {PREVIOUS['top_k']} (refitted)"
+        name = "previous: no floor keypoints (refitted)"
         print(f"{name:>42} {100 * acc:>8.1f}% {100 * acc_map:>8.1f}% {100 * fa:>9.1f}% {Q / dt:>10.1f}")
         figures["ablation_previous_accuracy"], figures["ablation_previous_false_accept"] = acc, fa
         figures["ablation_previous_accuracy_map"], figures["ablation_previous_qps"] = acc_map, Q / dt
