@@ -154,15 +154,15 @@ class MemoryConfig:
     # scale_range). A logistic regression on standardised features fitted on the tuning split of
     # experiments/memory_recall.py (--fit-acceptance prints these numbers); the operating threshold is folded
     # into accept_bias. Empty: the thresholds decide. The defaults: `memory_recall.py --fit-acceptance` (200 maps,
-    # 1024 map keypoints + 512 floor keypoints, top_k=2, icp_points=384, cluster_separation=1.5: the experiment's
+    # 1024 map keypoints + 512 floor keypoints, top_k=2, icp_points=256, cluster_separation=1.5: the experiment's
     # configuration).
-    accept_weights: tuple[float, ...] = (0.3191, 0, 0, 0.52764, 0.63999, 0.51345, 0.57663, 0.37761, 0.28086, 0,
-                                         -0.30145, -0.31026, 0.5949, 0, 0)
-    accept_mean: tuple[float, ...] = (0.7018, 0, 0, 3.40222, 2.47035, 2.67332, 2.64383, 1.65895, 0.50891, 0, 0.70902,
-                                      0.62245, 0.72832, 0, 0)
-    accept_scale: tuple[float, ...] = (0.30617, 1, 1, 0.84247, 1.18459, 0.94767, 1.01166, 1.51742, 0.29364, 1, 0.251,
-                                       0.13565, 0.24409, 1, 1)
-    accept_bias: float = 0.7019
+    accept_weights: tuple[float, ...] = (0.30509, 0, 0, 0.53475, 0.63843, 0.52652, 0.57809, 0.37127, 0.30781, 0,
+                                         -0.23286, -0.19504, 0.62967, 0, 0)
+    accept_mean: tuple[float, ...] = (0.7018, 0, 0, 3.40222, 2.47035, 2.67332, 2.64383, 1.65895, 0.50891, 0, 0.70469,
+                                      0.61156, 0.72638, 0, 0)
+    accept_scale: tuple[float, ...] = (0.30617, 1, 1, 0.84247, 1.18459, 0.94767, 1.01166, 1.51742, 0.29364, 1, 0.25586,
+                                       0.13643, 0.2478, 1, 1)
+    accept_bias: float = 0.54522
 
     def __post_init__(self):
         if self.descriptor_3d not in DESCRIPTOR_3D_DIMS:

@@ -92,7 +92,7 @@ from cm3d.outputs import write_json
 
 WORLD = synthetic.WorldConfig(height=120, width=160, supersample=1, fps=1.0)
 CFG = memory.MemoryConfig(max_maps=200, max_points=4096, max_keyframes=16, max_keypoints=1024,
-                          max_floor_keypoints=512, voxel_resolution=40.0, pixel_stride=4, top_k=2, icp_points=384,
+                          max_floor_keypoints=512, voxel_resolution=40.0, pixel_stride=4, top_k=2, icp_points=256,
                           cluster_separation=1.5)
 QUERY_KEYPOINTS = 256  # image keypoints of a query (a map: CFG.max_keypoints)
 QUERY_FLOOR_KEYPOINTS = 128  # floor keypoints of a query (a map: CFG.max_floor_keypoints)
