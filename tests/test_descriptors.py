@@ -194,3 +194,29 @@ def test_floor_features_without_a_floor_and_bad_input():
         keypoints.floor_features(images, wall, np.zeros((S, 3, 3)), poses, None, 16)
     with pytest.raises(ValueError, match="images"):
         keypoints.floor_features(images.astype(np.float32), wall, np.broadcast_to(K, (S, 3, 3)), poses, None, 16)
+
+
+def test_floor_features_on_a_real_tum_frame(shared_data):
+    """A real RGB-D frame (TUM fr2, camera looking down at a desk): the dominant horizontal plane below the
+    camera is the desk top, and its orthophoto yields keypoints on it."""
+    import cv2
+
+    from cm3d.ops import keypoints
+
+    root = shared_data / "tum_fr2_pair"
+    image = cv2.imread(str(root / "1.png"))[None, ..., ::-1].copy()
+    depth = cv2.imread(str(root / "1_depth.png"), cv2.IMREAD_UNCHANGED)[None] / 5000.0  # metres, 0 = none
+    K = np.array([[[520.9, 0, 325.1], [0, 521.0, 249.7], [0, 0, 1]]])
+    pose = np.eye(4)[None]
+    n, c = keypoints.floor_plane(depth, K, pose)
+    assert n @ np.array([0.0, -1.0, 0.0]) > np.cos(np.radians(35)) and 0.5 < c < 1.2  # desk ~0.5-1 m below
+    f = keypoints.floor_features(image, depth, K, pose, None, 128)
+    k = int(f.valid.sum())
+    assert k >= 20
+    np.testing.assert_allclose(f.points[:k] @ n + c, 0.0, atol=1e-6)  # on the plane
+    # the keypoints are where the frame sees the plane: their depth agrees with the measured depth
+    uvw = f.points[:k] @ K[0].T
+    u, v = np.round(uvw[:, :2] / uvw[:, 2:]).astype(int).T
+    measured = depth[0, v, u]
+    ok = measured > 0
+    assert ok.mean() > 0.8 and np.median(np.abs(uvw[ok, 2] / measured[ok] - 1)) < 0.03

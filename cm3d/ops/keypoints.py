@@ -230,7 +230,9 @@ def floor_plane(depth, K, cam_to_world, static=None, cfg: FloorConfig = FloorCon
 
     RANSAC over the static pixels' points (every ``cfg.stride``-th pixel): planes whose normal is
     within ``cfg.max_tilt`` of the first camera's up and which lie below the first camera; the one
-    with most points within 1 % of the camera height wins, refitted by least squares on its inliers."""
+    with most points within 1 % of the camera height wins, refitted by least squares on its inliers.
+    It is the dominant horizontal surface below the camera: the floor in a room, a table top when the
+    camera looks down at a desk (real TUM fr2 frames, ``tests/test_descriptors.py``)."""
     depth, K, cam_to_world = np.asarray(depth, np.float64), np.asarray(K, np.float64), np.asarray(cam_to_world, np.float64)
     S, H, W = depth.shape
     st = cfg.stride
