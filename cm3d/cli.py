@@ -250,6 +250,8 @@ def _memory(args) -> int:
         pts = np.asarray(bank.points[m])[np.asarray(bank.point_valid[m])]
         lo, hi = (pts.min(0), pts.max(0)) if len(pts) else (np.zeros(3), np.zeros(3))
         print(json.dumps({"map_id": int(m), "points": int(len(pts)), "keyframes": int(np.asarray(bank.kf_valid[m]).sum()),
+                          "keypoints": int(np.asarray(bank.kp_valid[m]).sum()),
+                          "floor_keypoints": int(np.asarray(bank.floor_kp_valid[m]).sum()),
                           "visits": int(bank.visits[m]), "bounds_min": lo.round(4).tolist(),
                           "bounds_max": hi.round(4).tolist()}, indent=1))
         return 0

@@ -150,7 +150,7 @@ def test_generate_bad_level_is_clear(tmp_path, level, capsys):
 def test_memory_ls_show_rm(tmp_path, capsys):
     from cm3d import memory
 
-    cfg = memory.MemoryConfig(max_maps=3, max_points=16, max_keyframes=2)
+    cfg = memory.MemoryConfig(max_maps=3, max_points=16, max_keyframes=2, max_floor_keypoints=4)
     bank = memory.empty(cfg)
     for seed in range(2):
         rng = np.random.default_rng(seed)
@@ -158,7 +158,8 @@ def test_memory_ls_show_rm(tmp_path, capsys):
             points=rng.normal(size=(16, 3)), normals=np.zeros((16, 3)), conf=np.ones(16),
             colors=np.zeros((16, 3), np.uint8), point_valid=np.arange(16) < 10 + seed,
             kf_desc=np.zeros((2, cfg.image_dim)), kf_valid=np.array([True, False]),
-            cloud_desc=np.zeros(cfg.cloud_dim), voxel_size=np.float32(0.1))
+            cloud_desc=np.zeros(cfg.cloud_dim), voxel_size=np.float32(0.1),
+            floor_keypoints=memory.Keypoints(np.zeros((3, 3)), np.zeros((3, cfg.keypoint_dim)), np.arange(3) < seed + 1))
         bank, _ = memory.add_map(bank, entry)
     path = tmp_path / "bank.cm3d"
     memory.save(bank, path, cfg)
@@ -166,7 +167,8 @@ def test_memory_ls_show_rm(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "2 of 3 maps" in out and "map   1:     11 points" in out
     assert cli.main(["memory", "show", str(path), "1"]) == 0
-    assert json.loads(capsys.readouterr().out)["points"] == 11
+    shown = json.loads(capsys.readouterr().out)
+    assert shown["points"] == 11 and shown["keypoints"] == 0 and shown["floor_keypoints"] == 2
     assert cli.main(["memory", "rm", str(path), "0"]) == 0
     capsys.readouterr()
     assert cli.main(["memory", "show", str(path), "0"]) == 2
