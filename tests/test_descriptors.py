@@ -194,6 +194,10 @@ def test_floor_features_without_a_floor_and_bad_input():
         keypoints.floor_features(images, wall, np.zeros((S, 3, 3)), poses, None, 16)
     with pytest.raises(ValueError, match="images"):
         keypoints.floor_features(images.astype(np.float32), wall, np.broadcast_to(K, (S, 3, 3)), poses, None, 16)
+    with pytest.raises(ValueError, match="up_prior"):
+        keypoints.FloorConfig(up_prior=(0.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match="plane_tolerance"):
+        keypoints.FloorConfig(plane_tolerance=0.0)
 
 
 def test_floor_features_on_a_real_tum_frame(shared_data):

@@ -180,6 +180,15 @@ class FloorConfig:
     contrast_threshold: float = 0.01
     up_prior: tuple[float, float, float] = (0.0, -1.0, 0.0)
 
+    def __post_init__(self):
+        for name in ("pixels_per_height", "plane_tolerance", "max_tilt", "contrast_threshold"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"FloorConfig.{name}: must be > 0, got {getattr(self, name)}")
+        if self.ransac_iterations < 1 or self.stride < 1 or self.max_canvas < 16:
+            raise ValueError("FloorConfig: ransac_iterations and stride must be >= 1, max_canvas >= 16")
+        if len(self.up_prior) != 3 or not 0 < float(np.linalg.norm(self.up_prior)) < np.inf:
+            raise ValueError(f"FloorConfig.up_prior: need a non-zero 3-vector, got {self.up_prior}")
+
 
 @struct.dataclass
 class FloorFeatures:
