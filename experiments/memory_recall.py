@@ -246,7 +246,7 @@ def load_visits(specs, use_cache: bool, raw: bool = False, floor: int = 0) -> li
     file (all lifted keypoints, :func:`raw_path`, cut to ``capacity``) when there is one, else the legacy
     file of that exact capacity (``KP_PER_FRAME`` per frame); a visit in neither is prepared and cached
     raw. ``raw``: only raw files (a keypoint capacity sweep; missing ones are prepared). ``floor``: this
-    many floor keypoints (:func:`floor_keypoints`) appended after the ``capacity`` image keypoints."""
+    many floor keypoints (:func:`floor_keypoints`, strongest first) as each entry's ``floor_keypoints``."""
     if floor > 0:
         return [add_floor(v, floor_keypoints(*spec[:3], use_cache), floor)
                 for v, spec in zip(load_visits(specs, use_cache, raw), specs)]
