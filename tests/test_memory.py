@@ -565,12 +565,19 @@ def _prepare_visit(depth, conf, K, c2w, images, static, frame_ok, uv, kdesc, kva
     return memory.build_entry(cloud, d[idx], ok, cfg, kp)
 
 
-def _visit_entry(seed, visit):
+@functools.lru_cache(maxsize=None)
+def _visit_sequence(seed, visit):
+    """One rendered visit with priors (rendered once per process: the fixture and the floor test share it)."""
     from cm3d.data import synthetic
-    from cm3d.ops import keypoints
 
     world = synthetic.WorldConfig(height=120, width=160, supersample=1, fps=1.0)
-    seq = synthetic.generate(seed, visit, VISIT_FRAMES, "slight", world)
+    return synthetic.generate(seed, visit, VISIT_FRAMES, "slight", world)
+
+
+def _visit_entry(seed, visit):
+    from cm3d.ops import keypoints
+
+    seq = _visit_sequence(seed, visit)
     static = ~seq.gt.dynamic_mask
     f = keypoints.detect_sequence(seq.images, static, 48, contrast_threshold=0.01)
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
@@ -729,15 +736,13 @@ def test_floor_keypoints_match_only_floor_keypoints():
 def test_floor_keypoints_alone_recall_a_revisit_with_the_right_pose():
     """A revisit's floor orthophoto keypoints (no image keypoints) against the stored room's: the RANSAC
     pose is the ground-truth similarity between the two visits' prior frames."""
-    from cm3d.data import synthetic
     from cm3d.ops import keypoints
 
     cfg = dataclasses.replace(VISIT_CFG, max_floor_keypoints=256, verification="keypoints", fallback_yaws=0)
-    world = synthetic.WorldConfig(height=120, width=160, supersample=1, fps=1.0)
     entries, pfws = [], []
     for visit in (0, 1):
         entry, pfw = _visit_entry(2, visit)
-        seq = synthetic.generate(2, visit, VISIT_FRAMES, "slight", world)
+        seq = _visit_sequence(2, visit)
         f = keypoints.floor_features(seq.images, seq.depth, seq.intrinsic, seq.cam_to_world, ~seq.gt.dynamic_mask, 256)
         entries.append(entry.replace(keypoints=None, floor_keypoints=memory.Keypoints(f.points, f.desc, f.valid)))
         pfws.append(pfw)

@@ -295,9 +295,13 @@ def floor_orthophoto(images, depth, K, cam_to_world, static, plane, cfg: FloorCo
     are warped by the plane's homography; where frames overlap the closest camera's view is kept (the
     sharpest). A view of the floor from another place and direction gives the same picture up to a
     2D rotation, translation and scale, which SIFT is invariant to: unlike the perspective images."""
+    return _orthophoto(*_check_views(images, depth, K, cam_to_world, static), plane, cfg)
+
+
+def _orthophoto(images, depth, K, cam_to_world, static, plane, cfg: FloorConfig):
+    """:func:`floor_orthophoto` of checked inputs (:func:`_check_views`)."""
     import cv2
 
-    images, depth, K, cam_to_world, static = _check_views(images, depth, K, cam_to_world, static)
     S, H, W = depth.shape
     n, c = np.asarray(plane[0], np.float64), float(plane[1])
     h = n @ cam_to_world[0, :3, 3] + c
@@ -362,7 +366,7 @@ def floor_features(images, depth, K, cam_to_world, static=None, capacity: int = 
     plane = floor_plane(depth, K, cam_to_world, static, cfg, seed)
     if plane is None:
         return FloorFeatures(pts, out, valid)
-    img, ok, to_world = floor_orthophoto(images, depth, K, cam_to_world, static, plane, cfg)
+    img, ok, to_world = _orthophoto(images, depth, K, cam_to_world, static, plane, cfg)
     mask = cv2.erode(ok.astype(np.uint8) * 255, np.ones((5, 5), np.uint8))
     det = cv2.SIFT_create(contrastThreshold=cfg.contrast_threshold)
     kps, desc = det.detectAndCompute(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY), mask)
