@@ -82,10 +82,12 @@ def main(argv=None):
     use_cache = not args.no_cache and not quick
 
     t = time.perf_counter()
-    maps = mr.load_visits([(s, 0, map_frames, map_kp) for s in range(n_maps)], use_cache)
-    revisits = mr.load_visits([(s, 1, query_frames, mr.QUERY_KEYPOINTS) for s in range(n_maps)], use_cache)
+    map_floor = mr.QUERY_FLOOR_KEYPOINTS if quick else mr.CFG.max_floor_keypoints  # (memory_recall's entries)
+    maps = mr.load_visits([(s, 0, map_frames, map_kp) for s in range(n_maps)], use_cache, floor=map_floor)
+    revisits = mr.load_visits([(s, 1, query_frames, mr.QUERY_KEYPOINTS) for s in range(n_maps)], use_cache,
+                              floor=mr.QUERY_FLOOR_KEYPOINTS)
     unseen = mr.load_visits([(mr.UNSEEN_SEED + s, 1, query_frames, mr.QUERY_KEYPOINTS) for s in range(n_unseen)],
-                            use_cache)
+                            use_cache, floor=mr.QUERY_FLOOR_KEYPOINTS)
     print(f"data: {n_maps} maps, {n_maps} revisits + {n_unseen} unseen queries (memory_recall.py's visits); "
           f"{time.perf_counter() - t:.1f} s (cached: {use_cache})")
     map_e, rq, uq = mr.stack(maps), mr.stack(revisits), mr.stack(unseen)
