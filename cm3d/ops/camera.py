@@ -11,6 +11,7 @@ All functions broadcast over leading (frame) axes.
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 from cm3d.ops import se3
 
@@ -21,6 +22,26 @@ def pixel_grid(height: int, width: int, dtype=jnp.float32) -> jnp.ndarray:
     """Pixel-centre coordinates (H, W, 2) as ``(u, v)``."""
     v, u = jnp.meshgrid(jnp.arange(height, dtype=dtype), jnp.arange(width, dtype=dtype), indexing="ij")
     return jnp.stack([u, v], axis=-1)
+
+
+def rays(uv, K):
+    """Camera rays ``K^{-1} (u, v, 1)`` (..., N, 3) of pixels uv (..., N, 2) (z = 1).
+
+    NumPy inputs are computed in NumPy (host code keeps float64), JAX inputs in JAX.
+    """
+    xp = np if isinstance(uv, np.ndarray) and isinstance(K, np.ndarray) else jnp
+    uv1 = xp.concatenate([uv, xp.ones_like(uv[..., :1])], -1)
+    return xp.einsum("...ij,...nj->...ni", xp.linalg.inv(K), uv1)
+
+
+def backproject(uv, depth, K, cam_to_world=None):
+    """Points (..., N, 3) of pixels uv (..., N, 2) at camera depth z (..., N): ``z K^{-1} (u, v, 1)``,
+    in the camera frame, or in the world when ``cam_to_world`` (..., 4, 4) is given."""
+    pc = rays(uv, K) * depth[..., None]
+    if cam_to_world is None:
+        return pc
+    xp = np if isinstance(pc, np.ndarray) and isinstance(cam_to_world, np.ndarray) else jnp
+    return xp.einsum("...ij,...nj->...ni", cam_to_world[..., :3, :3], pc) + cam_to_world[..., None, :3, 3]
 
 
 def unproject_camera(depth: jnp.ndarray, K: jnp.ndarray) -> jnp.ndarray:
