@@ -233,6 +233,38 @@ class MemoryBank:
         return jnp.sum(self.map_valid)
 
 
+@struct.dataclass
+class MapCloud:
+    """One stored map's voxel cloud, in the map's frame: points, normals (P, 3), colours (P, 3) uint8,
+    validity (P,) (all False when the map id was negative) and the map's voxel size."""
+
+    points: jax.Array
+    normals: jax.Array
+    colors: jax.Array
+    valid: jax.Array
+    voxel_size: jax.Array
+
+
+def map_cloud(bank: MemoryBank, map_id) -> MapCloud:
+    """The cloud of map ``map_id`` (jittable; ``map_id < 0`` gives an all-invalid cloud)."""
+    m = jnp.maximum(map_id, 0)
+    return MapCloud(points=bank.points[m], normals=bank.normals[m], colors=bank.colors[m],
+                    valid=bank.point_valid[m] & (map_id >= 0), voxel_size=bank.voxel_size[m])
+
+
+def without_map(bank: MemoryBank, map_id) -> MemoryBank:
+    """The bank with map ``map_id`` hidden from recall (jittable; ``map_id < 0`` hides nothing)."""
+    M = bank.map_valid.shape[0]
+    return bank.replace(map_valid=bank.map_valid & (jnp.arange(M) != map_id))
+
+
+def capacities(bank: MemoryBank) -> dict[str, int]:
+    """The bank's shape-fixing capacities, by their :class:`MemoryConfig` field names."""
+    return dict(max_maps=bank.points.shape[0], max_points=bank.points.shape[1],
+                max_keyframes=bank.kf_desc.shape[1], max_keypoints=bank.kp_points.shape[1],
+                max_floor_keypoints=bank.floor_kp_points.shape[1])
+
+
 def empty(cfg: MemoryConfig = MemoryConfig()) -> MemoryBank:
     """A bank with every slot free."""
     if cfg.hash_bits % 32:
