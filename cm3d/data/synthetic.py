@@ -13,9 +13,9 @@ dynamic mask (pixel centre on a moving object), forward flow to the next frame (
 surface point is at ``t + 1``, occlusions ignored, as in Sintel), and static world points (derived,
 :meth:`cm3d.data.GroundTruth.static_points`).
 
-:func:`make_priors` turns ground truth into VGGT-like priors: a per-sequence unknown scale and
-first-camera frame, depth scale jitter / smooth bias / noise, a confidence map, and pose noise and
-drift at the named :data:`NOISE_LEVELS`.
+:func:`make_priors` turns ground truth into VGGT-like priors with the one prior model of
+:mod:`cm3d.data.priors`: a per-sequence unknown scale and first-camera frame, depth scale jitter /
+smooth bias / noise, a confidence map, and pose noise and drift at the named :data:`NOISE_LEVELS`.
 """
 
 from __future__ import annotations
@@ -27,20 +27,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cm3d.data import priors
 from cm3d.data.sequence import GroundTruth, Sequence
 
 ROOM, BOX, SPHERE, EMPTY = 0, 1, 2, -1
 MAX_PRIMITIVES = 16
 
-# name -> (rotation deg, translation m): RMS size of the pose error, half i.i.d. jitter, half drift.
-NOISE_LEVELS = {
-    "none": (0.0, 0.0),
-    "slight": (1.0, 0.01),
-    "moderate": (3.0, 0.03),
-    "severe": (5.0, 0.05),
-}
-# name -> relative depth noise (per-pixel std, also scale of per-frame jitter and smooth bias).
-DEPTH_NOISE = {"none": 0.0, "slight": 0.005, "moderate": 0.01, "severe": 0.02}
+NOISE_LEVELS, DEPTH_NOISE = priors.NOISE_LEVELS, priors.DEPTH_NOISE  # the prior model's levels
 
 
 @dataclasses.dataclass(frozen=True)
@@ -402,81 +395,15 @@ def render_ground_truth(scene: Scene, visit: int, num_frames: int, cfg: WorldCon
 
 
 # ----------------------------------------------------------------------------------------------
-# Prior model
-
-
-def _perturb(rng, num, rot_deg, trans_m, drift_factor: float = 1.0):
-    """Pose errors (num, 4, 4): i.i.d. jitter plus a random-walk drift, each of RMS half the level
-    (the drift times ``drift_factor``)."""
-    from scipy.spatial.transform import Rotation
-
-    sig = np.array([trans_m] * 3 + [np.deg2rad(rot_deg)] * 3) / np.sqrt(3.0) / np.sqrt(2.0)
-    jitter = rng.normal(size=(num, 6)) * sig
-    drift = np.cumsum(rng.normal(size=(num, 6)) * sig / np.sqrt(max(num - 1, 1)), axis=0)
-    xi = jitter + drift * drift_factor
-    xi[0] = 0.0  # the first camera defines the prior frame, as in VGGT
-    out = np.tile(np.eye(4), (num, 1, 1))
-    out[:, :3, :3] = Rotation.from_rotvec(xi[:, 3:]).as_matrix()
-    out[:, :3, 3] = xi[:, :3]
-    return out
-
-
-def _smooth_field(rng, h, w, n=4):
-    """A smooth random field (h, w) of unit-ish amplitude: a few low-frequency cosines."""
-    v, u = np.mgrid[0:h, 0:w] / max(h, w)
-    f = np.zeros((h, w))
-    for _ in range(n):
-        k = rng.uniform(0.5, 2.5, 2)
-        f += np.cos(2 * np.pi * (k[0] * u + k[1] * v) + rng.uniform(0, 2 * np.pi))
-    return f / np.sqrt(n / 2)
+# Prior model: the one implementation lives in :mod:`cm3d.data.priors`
 
 
 def make_priors(images, gt: GroundTruth, level: str = "moderate", seed: int = 0,
                 timestamps=None, meta=None, drift: float = 1.0) -> Sequence:
-    """VGGT-like priors from ground truth.
-
-    The priors live in the first camera's frame, scaled so that the mean distance of the
-    ground-truth points to the first camera is 1 (VGGT's normalisation) times an unknown factor
-    ``exp(N(0, 0.1))``: so priors of two visits differ from each other and from the world by a
-    similarity transform. Depth: ``d' = s d (1 + j_t)(1 + b(u, v)) (1 + n)`` with per-frame
-    jitter ``j``, a smooth bias ``b`` and pixel noise ``n`` (all of std :data:`DEPTH_NOISE`).
-    Confidence (>= 1, like VGGT): high on smooth, near surfaces, low on depth edges and far away.
-    Poses: ground-truth relative poses times errors of the level's size (:data:`NOISE_LEVELS`);
-    ``drift`` multiplies their random-walk part (1: the level's; larger: a prior whose trajectory
-    drifts, e.g. for long videos whose chain of chunks should need a loop closure).
-    """
-    if level not in NOISE_LEVELS:
-        raise ValueError(f"level: unknown noise level {level!r}; choose from {list(NOISE_LEVELS)}")
-    if not (np.isfinite(drift) and drift >= 0):
-        raise ValueError(f"drift: must be a finite number >= 0, got {drift}")
-    rng = np.random.default_rng([seed, 3])
-    S, H, W = gt.depth.shape
-    first_inv = np.linalg.inv(gt.cam_to_world[0])
-    rel = first_inv @ gt.cam_to_world
-    pts = gt.world_points(stride=4)
-    pts_first = pts @ first_inv[:3, :3].T + first_inv[:3, 3]
-    valid = gt.depth[:, ::4, ::4] > 0
-    scale = 1.0 / np.linalg.norm(pts_first[valid], axis=-1).mean() * np.exp(rng.normal(0, 0.1))
-
-    rot_deg, trans_m = NOISE_LEVELS[level]
-    noisy = rel @ _perturb(rng, S, rot_deg, trans_m, drift)
-    noisy[:, :3, 3] *= scale
-
-    sd = DEPTH_NOISE[level]
-    jit = 1 + sd * rng.normal(size=(S, 1, 1))
-    bias = 1 + sd * _smooth_field(rng, H, W)[None]
-    noise = 1 + sd * rng.normal(size=(S, H, W))
-    depth = (scale * gt.depth * jit * bias * noise).astype(np.float32)
-
-    gy, gx = np.gradient(np.log(np.maximum(gt.depth, 1e-3)), axis=(1, 2))
-    edge = np.exp(-20.0 * np.hypot(gx, gy))
-    far = np.exp(-gt.depth / 6.0)
-    conf = (1.0 + 9.0 * edge * far).astype(np.float32)
-
-    ts = np.arange(S, dtype=np.float64) if timestamps is None else np.asarray(timestamps, float)
-    meta = {**(meta or {}), "level": level, "prior_scale": float(scale), "prior_seed": seed}
-    return Sequence(images=images, depth=depth, depth_conf=conf, intrinsic=gt.intrinsic.copy(),
-                    cam_to_world=noisy, timestamps=ts, gt=gt, meta=meta)
+    """VGGT-like priors from ground truth: :func:`cm3d.data.priors.make_priors` (first camera's
+    frame, unknown scale, depth jitter / bias / noise, confidence, pose noise and drift at the named
+    :data:`NOISE_LEVELS`)."""
+    return priors.make_priors(images, gt, level, seed, timestamps=timestamps, meta=meta, drift=drift)
 
 
 def generate(scene_seed: int = 0, visit: int = 0, num_frames: int = 30, level: str = "moderate",
@@ -520,20 +447,12 @@ def make_chunk_priors(images, gt: GroundTruth, chunk_size: int = 40, overlap: in
                       level: str = "moderate", seed: int = 0, timestamps=None, meta=None,
                       drift: float = 1.0) -> list[Sequence]:
     """Split one long rendered video into overlapping chunks, each with its own VGGT-like prior
-    (:func:`make_priors`: its own unknown scale, its first camera as the frame, its own depth and
-    pose noise), as VGGT gives when run chunk by chunk. Ground truth stays in the common metric
-    world frame; timestamps are global (default: frame index); ``drift``: see :func:`make_priors`."""
-    S = len(images)
-    ts = np.arange(S, dtype=np.float64) if timestamps is None else np.asarray(timestamps, np.float64)
-    chunks = []
-    for k, (a, b) in enumerate(chunk_ranges(S, chunk_size, overlap)):
-        g = GroundTruth(cam_to_world=gt.cam_to_world[a:b], depth=gt.depth[a:b], intrinsic=gt.intrinsic[a:b],
-                        dynamic_mask=None if gt.dynamic_mask is None else gt.dynamic_mask[a:b],
-                        flow=None if gt.flow is None else gt.flow[a:b - 1])
-        m = {**(meta or {}), "chunk": k, "chunk_start": a, "chunk_stop": b}
-        chunks.append(make_priors(images[a:b], g, level, seed=seed * 7919 + k, timestamps=ts[a:b], meta=m,
-                                  drift=drift))
-    return chunks
+    (:func:`cm3d.data.priors.segment_priors`: its own unknown scale, its first camera as the frame,
+    its own depth and pose noise), as VGGT gives when run chunk by chunk. Ground truth stays in the
+    common metric world frame; timestamps are global (default: frame index); ``drift``: see
+    :func:`cm3d.data.priors.make_priors`."""
+    return priors.segment_priors(images, gt, chunk_ranges(len(images), chunk_size, overlap), level, seed,
+                                 timestamps=timestamps, meta=meta, drift=drift)
 
 
 def generate_long_video(scene_seed: int = 0, visit: int = 0, num_frames: int = 200, chunk_size: int = 40,
