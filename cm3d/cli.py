@@ -109,7 +109,7 @@ def _load_inputs(paths):
 
     if len(paths) == 1 and not _holds_chunks(paths[0]):
         return load_input(paths[0]), None
-    from cm3d import stitch
+    from cm3d import long_video as stitch
 
     chunks = stitch.load_chunks(paths)
     if len(chunks) == 1:
@@ -120,10 +120,10 @@ def _load_inputs(paths):
 
 def _run_chunks(chunks, cfg, bank, args):
     """The chunks of one long video: the pipeline over every chunk threading one memory bank, Sim(3)
-    overlap alignment, loop closures from recalls across chunks (measured frame to frame), the
-    Sim(3) pose graph, then the whole-trajectory refinement (:func:`cm3d.stitch.stitch_with_memory`).
+    overlap alignment, loop closures from recalls across chunks, the
+    Sim(3) pose graph, then the whole-trajectory refinement (:func:`cm3d.long_video.stitch_with_memory`).
     Returns (bank, whole-video result: refined trajectory, the stitched priors as its prior; facts)."""
-    from cm3d import stitch
+    from cm3d import long_video as stitch
 
     bars = _Progress(not args.quiet)
     st = stitch.stitch_with_memory(chunks, pipeline_config=cfg, bank=bank,
@@ -139,13 +139,13 @@ def _run_chunks(chunks, cfg, bank, args):
              "loops": [{"chunk": lc.chunk, "other": lc.other, "frames": list(lc.frames),
                         "other_frames": list(lc.other_frames or ()), "transform": lc.transform,
                         "inliers": lc.inliers, "rmse": lc.rmse, "discrepancy": f["loop_discrepancy"][i],
-                        "kept": bool(f["loop_kept"][i]), "frame_pairs": lc.pairs,
-                        "sigma": None if lc.sigma is None else lc.sigma} for i, lc in enumerate(st.loops)]}
+                        "kept": bool(f["loop_kept"][i])} for i, lc in enumerate(st.loops)]}
     return st.bank, res, facts
 
 
 def _run(args) -> int:
-    from cm3d import memory, outputs, pipeline, stitch
+    from cm3d import long_video as stitch
+    from cm3d import memory, outputs, pipeline
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -187,7 +187,7 @@ def _run(args) -> int:
     if bank_path is not None and cfg.use_memory:
         memory.save(bank, bank_path, cfg.memory)
     for w in res.windows:
-        print("  " + ("" if "chunk" not in w else f"chunk {w['chunk']}: ") + _window_line(w))
+        print("  " + outputs.window_line(w))
     if m:
         p, r = m["prior"], m["refined"]
         print(f"ATE prior {p['ate']:.5f} -> refined {r['ate']:.5f} ({-m['ate_reduction_pct']:+.1f} %), "
@@ -198,25 +198,6 @@ def _run(args) -> int:
           f"{', metrics.json' if m else ''}{', stitch.json' if chunks is not None else ''}"
           f"{'' if args.no_pictures else ', pictures'}){saved}")
     return 0
-
-
-def _window_line(w: dict) -> str:
-    """One line per window: frames, memory decision, refinement."""
-    a, b = w["frames"]
-    if not w.get("memory", True):
-        mem = "memory off"
-    elif w["accepted"]:
-        mem = (f"recalled map {w['recalled_map']} ({w['keypoint_inliers'][0] if w['keypoint_inliers'] else 0} keypoint"
-               f" / {w['inlier_count']} ICP inliers, RMSE {w['rmse']:.4f}, scale {w['scale']:.3f})")
-    elif w["created_map"]:
-        mem = f"new map {w['map_id']}" + (f" (candidates {w['candidates']} rejected)" if w["candidates"] else "")
-    elif w["map_id"] >= 0:
-        mem = f"merged into map {w['map_id']} (this visit's map)"
-    else:
-        mem = "not stored (bank full)"
-    ref = "refined" if w["refined"] else "kept prior (gate)"
-    return (f"frames {a:4d}-{b:4d}: {mem}; {ref}, {w['landmarks']} landmarks "
-            f"({w['memory_landmarks']} from memory), {w['observations']} observations")
 
 
 def _demo(args) -> int:
@@ -293,7 +274,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "several .npz files (or one holding a 'chunk' key): overlapping chunks of one long video: "
                    "the pipeline runs on every chunk threading the memory (recall across chunks), the chunks "
                    "are aligned by Sim(3) on their shared frames, a Sim(3) pose graph closes loops "
-                   "recalled from memory (measured frame to frame), and one pose graph over every frame "
+                   "recalled from memory, and one pose graph over every frame "
                    "refines the whole trajectory (trajectory.txt; trajectory_prior.txt: the stitched priors); "
                    "stitch.json holds the chunk transforms, loop closures and the refinement's facts")
     r.add_argument("--out", required=True, metavar="DIR", help="output folder")

@@ -66,9 +66,7 @@ def run_demo(scene: int = 0, visits: int = 3, frames: int | None = None, quick: 
                      "rpe_t_prior": m["prior"]["rpe_trans"], "rpe_t_refined": m["refined"]["rpe_trans"],
                      "rpe_r_prior": m["prior"]["rpe_rot"], "rpe_r_refined": m["refined"]["rpe_rot"],
                      "mask_iou": m.get("mask", {}).get("iou", float("nan")),
-                     "recalled": "yes" if any(w["accepted"] and w["recalled_map"] not in
-                                              {x["map_id"] for x in res.windows if x["created_map"]}
-                                              for w in res.windows) else "no",
+                     "recalled": "yes" if pipeline.recalled_earlier_map(res.windows) else "no",
                      "seconds": dt, "windows": res.windows})
     if out_dir is not None:
         memory.save(bank, out_dir / "memory.cm3d", cfg.memory)
@@ -76,11 +74,9 @@ def run_demo(scene: int = 0, visits: int = 3, frames: int | None = None, quick: 
           "seconds: flow + keypoints + back end, the first visit includes compilation)\n")
     print(format_table(rows))
     print("\nmemory decisions per window (recalled = a map stored by an earlier visit was verified and updated)")
-    from cm3d.cli import _window_line
-
     for r in rows:
         for w in r["windows"]:
-            print(f"  visit {r['visit']}: " + _window_line(w))
+            print(f"  visit {r['visit']}: " + outputs.window_line(w))
     mean = lambda k: float(np.mean([r[k] for r in rows]))  # noqa: E731
     red = 100.0 * (mean("ate_prior") - mean("ate_refined")) / max(mean("ate_prior"), 1e-12)
     print(f"\nmean ATE prior {mean('ate_prior'):.5f} -> refined {mean('ate_refined'):.5f} "
@@ -89,5 +85,5 @@ def run_demo(scene: int = 0, visits: int = 3, frames: int | None = None, quick: 
         print(f"outputs in {out_dir}/visitNN/ and the bank in {out_dir / 'memory.cm3d'}")
     if json_path:
         with atomic_write(json_path, "w") as f:
-            json.dump(rows, f, indent=1)
+            json.dump([{**r, "windows": [w.to_json() for w in r["windows"]]} for r in rows], f, indent=1)
     return rows

@@ -11,11 +11,13 @@ from pathlib import Path
 
 import numpy as np
 
+from cm3d import memory
 from cm3d.data.atomic import atomic_write
 from cm3d.data.tum import write_tum
+from cm3d.ops import camera, sim3
 
 __all__ = ["write_json", "write_masks", "write_ply", "write_tum", "static_map", "sequence_metrics",
-           "memory_points", "write_results"]
+           "memory_points", "window_line", "write_results"]
 
 
 def _plain(obj):
@@ -99,11 +101,9 @@ def static_map(seq, poses: np.ndarray, masks: np.ndarray, stride: int = 4, voxel
     ok &= c >= np.quantile(c[ok], conf_quantile)
     S, h, w = d.shape
     v, u = np.mgrid[0:h, 0:w].astype(np.float64) * stride
-    uv1 = np.stack([u, v, np.ones_like(u)], -1)
-    rays = np.einsum("sij,hwj->shwi", np.linalg.inv(np.asarray(seq.intrinsic, np.float64)), uv1)
-    pc = rays * d[..., None]
-    P = np.asarray(poses, np.float64)
-    pw = np.einsum("sij,shwj->shwi", P[:, :3, :3], pc) + P[:, None, None, :3, 3]
+    uv = np.stack([u, v], -1).reshape(-1, 2)
+    pw = camera.backproject(uv, d.reshape(S, -1), np.asarray(seq.intrinsic, np.float64),
+                            np.asarray(poses, np.float64)).reshape(S, h, w, 3)
     pts, cols = pw[ok], np.asarray(seq.images)[:, ::stride, ::stride][ok].astype(np.float64)
     extent = float(np.max(np.ptp(pts, axis=0))) if len(pts) > 1 else 1.0
     vs = max(extent / voxel_ratio, 1e-9)
@@ -140,18 +140,38 @@ def sequence_metrics(result) -> dict | None:
 def memory_points(bank, result):
     """Points of the map this sequence was last recalled into / wrote, in the sequence's frame, and
     whether that map was *recalled* (it existed before this sequence) -> (points, colours, recalled)."""
-    wins = [w for w in result.windows if w["map_id"] >= 0]
+    wins = [w for w in result.windows if w.map_id >= 0]
     if bank is None or not wins:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), False
-    acc = [w for w in result.windows if w["accepted"]]
+    acc = [w for w in result.windows if w.accepted]
     w = acc[-1] if acc else wins[-1]
-    m = w["recalled_map"] if acc else w["map_id"]
-    T = np.asarray(w["transform"], np.float64) if acc else np.eye(4)
-    ok = np.asarray(bank.point_valid[m])
-    pts = np.asarray(bank.points[m], np.float64)[ok]
-    pts = (pts - T[:3, 3]) @ np.linalg.inv(T[:3, :3]).T
-    created = {x["map_id"] for x in result.windows if x["created_map"]}
-    return pts.astype(np.float32), np.asarray(bank.colors[m])[ok], bool(acc) and m not in created
+    m = w.recalled_map if acc else w.map_id
+    T = w.transform if acc else np.eye(4)
+    cloud = memory.map_cloud(bank, m)
+    ok = np.asarray(cloud.valid)
+    pts = sim3.apply(sim3.inverse(np.asarray(T, np.float64)), np.asarray(cloud.points, np.float64)[ok])
+    created = {x.map_id for x in result.windows if x.created_map}
+    return pts.astype(np.float32), np.asarray(cloud.colors)[ok], bool(acc) and m not in created
+
+
+def window_line(w) -> str:
+    """One line per :class:`cm3d.pipeline.WindowRecord`: frames, memory decision, refinement."""
+    a, b = w.frames
+    if not w.memory:
+        mem = "memory off"
+    elif w.accepted:
+        mem = (f"recalled map {w.recalled_map} ({w.keypoint_inliers[0] if w.keypoint_inliers else 0} keypoint"
+               f" / {w.inlier_count} ICP inliers, RMSE {w.rmse:.4f}, scale {w.scale:.3f})")
+    elif w.created_map:
+        mem = f"new map {w.map_id}" + (f" (candidates {list(w.candidates)} rejected)" if w.candidates else "")
+    elif w.map_id >= 0:
+        mem = f"merged into map {w.map_id} (this visit's map)"
+    else:
+        mem = "not stored (bank full)"
+    ref = "refined" if w.refined else "kept prior (gate)"
+    chunk = "" if w.chunk is None else f"chunk {w.chunk}: "
+    return (f"{chunk}frames {a:4d}-{b:4d}: {mem}; {ref}, {w.landmarks} landmarks "
+            f"({w.memory_landmarks} from memory), {w.observations} observations")
 
 
 def write_results(out_dir, result, bank=None, overlay_every: int = 5, pictures: bool = True) -> dict:
@@ -166,7 +186,7 @@ def write_results(out_dir, result, bank=None, overlay_every: int = 5, pictures: 
     write_masks(out / "masks", result.masks)
     pts, cols = static_map(seq, result.poses, result.masks)
     write_ply(out / "static_map.ply", pts, cols)
-    write_json(out / "recall.json", {"windows": result.windows})
+    write_json(out / "recall.json", {"windows": [w.to_json() for w in result.windows]})
     m = sequence_metrics(result)
     if m is not None:
         write_json(out / "metrics.json", m)

@@ -52,7 +52,7 @@ from flax import struct
 
 from cm3d import memory, trajectory
 from cm3d.motion import FramePrior, MotionConfig, motion_cues, moving_tracks
-from cm3d.ops import descriptors, se3
+from cm3d.ops import descriptors, robust, se3
 from cm3d.ops.flow import FlowConfig
 from cm3d.ops.gmm import GMMConfig
 from cm3d.ops.keypoints import KeypointConfig, Matches
@@ -638,7 +638,7 @@ def _frame_motion_residuals(r, uv, group, ok, num_groups: int, K, min_scale, rou
         coef = jnp.where((count >= 8)[:, None, None] & jnp.all(jnp.isfinite(coef), (1, 2), keepdims=True), coef, 0.0)
         res = r0 - jnp.einsum("ki,kij->kj", phi, coef[group])
         e2 = jnp.sum(res * res, -1)
-        scale = jnp.maximum(min_scale, 1.4826 * jnp.sqrt(factors.masked_median(e2, ok)))
+        scale = jnp.maximum(min_scale, 1.4826 * jnp.sqrt(robust.masked_median(e2, ok)))
         w = ok / (1.0 + e2 / scale ** 2)
     return res
 
@@ -673,8 +673,8 @@ def prior_consistent_tracks(win: Window, lm_: Landmarks, obs: trajectory.Observa
     n = jnp.sum(ov, -1)
     sq = jnp.sum(jnp.where(ov, err ** 2, 0.0), -1)
     rms = jnp.sqrt(sq / jnp.maximum(n - 1, 1))
-    med = factors.masked_median(rms, has)
-    mad = factors.masked_median(jnp.abs(rms - med), has)
+    med = robust.masked_median(rms, has)
+    mad = robust.masked_median(jnp.abs(rms - med), has)
     tau = jnp.maximum(cfg.track_check.min_px, med + cfg.track_check.n_mad * 1.4826 * mad)
     return has & (rms <= tau)
 
@@ -751,7 +751,7 @@ def gate_refinement(win: Window, points0, obs: trajectory.Observations, ref: tra
     dt = win.poses.dtype
     stat = (2.0 * (cost0 - ref.result.cost)).astype(dt)
     seen = jnp.zeros(win.poses.shape[0], jnp.int32).at[obs.pose_idx].max(ref.inlier.astype(jnp.int32))
-    thr = trajectory.chi2_quantile(rc.gate_quantile, 6.0 * jnp.maximum(jnp.sum(seen) - 1, 1).astype(dt))
+    thr = robust.chi2_quantile(rc.gate_quantile, 6.0 * jnp.maximum(jnp.sum(seen) - 1, 1).astype(dt))
     use = stat > thr
     return ref.replace(poses=jnp.where(use, ref.refined_poses, win.poses),
                        points=jnp.where(use, ref.result.params.points, points_fixed),
@@ -805,7 +805,7 @@ def rescale_window(poses, points, init_poses, init_points, seed, valid):
     d_ref = jnp.linalg.norm(points - poses[seed, :3, 3], axis=-1)
     d_init = jnp.linalg.norm(init_points - init_poses[seed, :3, 3], axis=-1)
     ok = valid & (d_init > 0) & jnp.isfinite(d_ref)
-    r = factors.masked_median(d_ref / jnp.where(ok, d_init, 1.0), ok)
+    r = robust.masked_median(d_ref / jnp.where(ok, d_init, 1.0), ok)
     r = jnp.where((jnp.sum(ok) >= 3) & jnp.isfinite(r) & (r > 0), jnp.clip(r, 0.2, 5.0), 1.0)
     c0 = poses[0, :3, 3]
     return poses.at[:, :3, 3].set(c0 + (poses[:, :3, 3] - c0) / r), c0 + (points - c0) / r
@@ -866,7 +866,7 @@ def memory_refinement(win: Window, lm_: Landmarks, ref0: trajectory.Refinement, 
     # the memory-free optimum (a map less accurate than the window, or placed less accurately, holds less),
     # and at least a share of the map's voxel (its points are voxel means, its planes fitted at that scale)
     _, near, plane = trajectory.associate_surface(x0.points, pvalid, placed, cfg.assoc)
-    spread = 1.4826 * factors.masked_median(plane, near)
+    spread = 1.4826 * robust.masked_median(plane, near)
     sigma = jnp.maximum(cfg.assoc.plane_sigma_ratio * surface.d_scene,
                         jnp.where(jnp.sum(near) >= cfg.min_memory_landmarks, spread, 0.0))
     sigma = jnp.maximum(sigma, cfg.memory_sigma_voxels * placed.voxel)
@@ -876,7 +876,7 @@ def memory_refinement(win: Window, lm_: Landmarks, ref0: trajectory.Refinement, 
     cost_own, _ = structure_only_cost(g0, poses1, res.params.points, min_observations=rc.solver.min_observations)
     stat = (2.0 * (cost_own - ref0.result.cost)).astype(win.poses.dtype)
     seen = jnp.zeros(win.poses.shape[0], jnp.int32).at[obs.pose_idx].max(ref0.inlier.astype(jnp.int32))
-    thr = trajectory.chi2_quantile(rc.gate_quantile, 6.0 * jnp.maximum(jnp.sum(seen) - 1, 1).astype(win.poses.dtype))
+    thr = robust.chi2_quantile(rc.gate_quantile, 6.0 * jnp.maximum(jnp.sum(seen) - 1, 1).astype(win.poses.dtype))
     fixed = restore_depth_scale(poses1, win.poses, res.params.points, lm_.points, lm_.seed, first)
     fixed = jnp.where(win.valid[:, None, None], fixed, win.poses)
     accept = (jnp.sum(matched) >= cfg.min_memory_landmarks) & (stat <= thr) & jnp.all(jnp.isfinite(fixed))
@@ -1080,12 +1080,98 @@ step_jit = jax.jit(step, static_argnames="cfg")
 # Host side: per-frame results and the one-call API
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class WindowRecord:
+    """One window's facts on the host (what ``recall.json`` lists per window).
+
+    frames: (first, last) frame numbers; memory: the memory was on; candidates, votes, scores,
+    keypoint_inliers: the recall's candidate maps (ids >= 0 only) and their evidence; accepted,
+    recalled_map: the verification's decision; inlier_count, rmse, fitness, scale: its ICP facts;
+    transform (4, 4): its Sim(3) window -> recalled map; placement (4, 4): the Sim(3) the memory
+    priors and the merge used; map_id: the map written (-1 bank full), created_map; refined,
+    gate_stat, gate_threshold: the significance gate; landmarks, memory_landmarks, memory_used,
+    memory_stat, memory_threshold: the memory solve and its χ² test; inconsistent_tracks,
+    observations, inliers, lm_iterations: the factor graph; chunk: the chunk of a long video
+    (None for a single sequence)."""
+
+    frames: tuple
+    memory: bool
+    candidates: tuple
+    votes: tuple
+    scores: tuple
+    keypoint_inliers: tuple
+    accepted: bool
+    recalled_map: int
+    inlier_count: int
+    rmse: float
+    fitness: float
+    scale: float
+    transform: np.ndarray
+    placement: np.ndarray
+    map_id: int
+    created_map: bool
+    refined: bool
+    gate_stat: float
+    gate_threshold: float
+    landmarks: int
+    memory_landmarks: int
+    memory_used: bool
+    memory_stat: float
+    memory_threshold: float
+    inconsistent_tracks: int
+    observations: int
+    inliers: int
+    lm_iterations: int
+    chunk: int | None = None
+
+    @classmethod
+    def from_result(cls, w: WindowResult, memory_on: bool) -> "WindowRecord":
+        """The record of one window's :class:`WindowResult` (numpy, one window: no frame axis)."""
+        ok = np.asarray(w.valid, bool)
+        r = w.recall
+        cand = [int(c) for c in r.candidates]
+        keep = lambda vals, kind: tuple(kind(v) for c, v in zip(cand, vals) if c >= 0)  # noqa: E731
+        return cls(
+            frames=(int(w.index[ok].min()), int(w.index[ok].max())), memory=memory_on,
+            candidates=tuple(c for c in cand if c >= 0), votes=keep(r.votes, float), scores=keep(r.scores, float),
+            keypoint_inliers=keep(r.keypoint_inliers, int), accepted=bool(r.accepted), recalled_map=int(r.recalled),
+            inlier_count=int(r.inlier_count), rmse=float(r.inlier_rmse), fitness=float(r.fitness),
+            scale=float(r.scale), transform=np.asarray(r.transform, np.float64),
+            placement=np.asarray(r.placement, np.float64), map_id=int(r.map_id), created_map=bool(r.created),
+            refined=bool(w.refined), gate_stat=float(w.gate_stat), gate_threshold=float(w.gate_threshold),
+            landmarks=int(w.landmarks), memory_landmarks=int(w.memory_landmarks), memory_used=bool(w.memory_used),
+            memory_stat=float(w.memory_stat), memory_threshold=float(w.memory_threshold),
+            inconsistent_tracks=int(w.inconsistent), observations=int(w.observations), inliers=int(w.inliers),
+            lm_iterations=int(w.iterations))
+
+    def to_json(self) -> dict:
+        """A JSON-ready dict (lists, Python numbers; transforms rounded to 6 decimals); ``chunk`` only
+        when set."""
+        out = {}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if f.name == "chunk" and v is None:
+                continue
+            if isinstance(v, np.ndarray):
+                v = v.round(6).tolist()
+            elif isinstance(v, tuple):
+                v = list(v)
+            out[f.name] = v
+        return out
+
+
+def recalled_earlier_map(windows) -> bool:
+    """Whether a window accepted a map that an earlier sequence stored (not one this sequence created)."""
+    created = {w.map_id for w in windows if w.created_map}
+    return any(w.accepted and w.recalled_map >= 0 and w.recalled_map not in created for w in windows)
+
+
 @dataclasses.dataclass
 class SequenceResult:
     """What the pipeline found in one sequence (numpy, input resolution).
 
     poses: (S, 4, 4) refined cam_to_world; prior: (S, 4, 4) the input prior; masks: (S, H, W) bool
-    dynamic masks; windows: one dict per window (frames, refinement and memory decision);
+    dynamic masks; windows: one :class:`WindowRecord` per window;
     sequence: the input :class:`cm3d.data.Sequence`."""
 
     poses: np.ndarray
@@ -1103,7 +1189,7 @@ def _upsample(mask: np.ndarray, s: int, H: int, W: int) -> np.ndarray:
 
 def collect(outputs: StepOutputs, sequence, cfg: PipelineConfig = PipelineConfig()) -> SequenceResult:
     """Per-frame results from the stacked step outputs (host): the refined pose of every frame
-    (from the window that refined it), full-resolution masks and one record per window."""
+    (from the window that refined it), full-resolution masks and one :class:`WindowRecord` per window."""
     out = jax.tree.map(np.asarray, outputs)
     S, H, W = sequence.depth.shape
     poses = np.array(out.init_pose[:S], np.float64)
@@ -1112,26 +1198,7 @@ def collect(outputs: StepOutputs, sequence, cfg: PipelineConfig = PipelineConfig
         w = jax.tree.map(lambda a: a[t], out.window)
         ok = w.valid.astype(bool)
         poses[w.index[ok]] = w.poses[ok]
-        r = w.recall
-        cand = [int(c) for c in r.candidates]
-        windows.append({
-            "frames": [int(w.index[ok].min()), int(w.index[ok].max())], "memory": bool(cfg.use_memory),
-            "candidates": [c for c in cand if c >= 0],
-            "votes": [float(v) for c, v in zip(cand, r.votes) if c >= 0],
-            "scores": [float(v) for c, v in zip(cand, r.scores) if c >= 0],
-            "keypoint_inliers": [int(v) for c, v in zip(cand, r.keypoint_inliers) if c >= 0],
-            "accepted": bool(r.accepted), "recalled_map": int(r.recalled),
-            "inlier_count": int(r.inlier_count), "rmse": float(r.inlier_rmse), "fitness": float(r.fitness),
-            "scale": float(r.scale), "transform": np.asarray(r.transform, np.float64).round(6).tolist(),
-            "placement": np.asarray(r.placement, np.float64).round(6).tolist(),
-            "map_id": int(r.map_id), "created_map": bool(r.created),
-            "refined": bool(w.refined), "gate_stat": float(w.gate_stat), "gate_threshold": float(w.gate_threshold),
-            "landmarks": int(w.landmarks), "memory_landmarks": int(w.memory_landmarks),
-            "memory_used": bool(w.memory_used), "memory_stat": float(w.memory_stat),
-            "memory_threshold": float(w.memory_threshold),
-            "inconsistent_tracks": int(w.inconsistent),
-            "observations": int(w.observations), "inliers": int(w.inliers), "lm_iterations": int(w.iterations),
-        })
+        windows.append(WindowRecord.from_result(w, bool(cfg.use_memory)))
     masks = _upsample(out.mask[:S].astype(bool), cfg.stride, H, W)
     return SequenceResult(poses=poses, prior=np.asarray(sequence.cam_to_world, np.float64), masks=masks,
                           windows=windows, sequence=sequence)

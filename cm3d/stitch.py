@@ -90,7 +90,7 @@ from cm3d.ops import flow as oflow
 from cm3d.ops import se3
 from cm3d.solvers import factors, lm
 from cm3d.solvers.align import umeyama_transform
-from cm3d.solvers.factors import masked_median
+from cm3d.ops.robust import masked_median
 
 __all__ = ["Boundary", "FrameGraphConfig", "LoopClosure", "PoseGraphConfig", "StitchConfig", "StitchError",
            "StitchResult", "align_overlap", "chunk_layout", "concat_chunks", "frame_graph",
@@ -1290,13 +1290,13 @@ def recall_loops(results, min_gap: int = 2) -> list[LoopClosure]:
     loops = []
     for k, res in enumerate(results):
         for w in res.windows:
-            made = creator.get(w["recalled_map"])
-            if w["accepted"] and made is not None and k - made[0] >= min_gap:
-                loops.append(LoopClosure(chunk=k, other=made[0], frames=tuple(w["frames"]),
-                                         transform=np.asarray(w["transform"], np.float64),
-                                         inliers=int(w["inlier_count"]), rmse=float(w["rmse"]), other_frames=made[1]))
-            if w["created_map"] and w["map_id"] >= 0:
-                creator.setdefault(w["map_id"], (k, tuple(w["frames"])))
+            made = creator.get(w.recalled_map)
+            if w.accepted and made is not None and k - made[0] >= min_gap:
+                loops.append(LoopClosure(chunk=k, other=made[0], frames=tuple(w.frames),
+                                         transform=np.asarray(w.transform, np.float64),
+                                         inliers=int(w.inlier_count), rmse=float(w.rmse), other_frames=made[1]))
+            if w.created_map and w.map_id >= 0:
+                creator.setdefault(w.map_id, (k, tuple(w.frames)))
     return loops
 
 
@@ -1499,7 +1499,7 @@ def stitch_with_memory(chunks, overlap: int | None = None, config: StitchConfig 
         kept = frame_facts["kept"]
         seq = seq.replace(cam_to_world=poses)
     facts = {**facts, "chained_transforms": G0, "pipeline_s": t_pipe, "windows": sum(len(r.windows) for r in results),
-             "recalls": sum(int(w["accepted"]) for r in results for w in r.windows), "use_refined": bool(use_refined),
+             "recalls": sum(int(w.accepted) for r in results for w in r.windows), "use_refined": bool(use_refined),
              "poses_stitched": stitched, "frames": frame_facts, "loops_measured": sum(lc.pairs > 0 for lc in loops)}
     return StitchResult(sequence=seq, poses_aligned=chained.cam_to_world, poses_refined=seq.cam_to_world,
                         chunk_transforms=G, ranges=ranges, frame_chunk=frame_chunk, boundaries=bounds,
@@ -1537,7 +1537,7 @@ def memory_sequence_result(res: StitchResult, chunks):
         mine = np.flatnonzero(res.frame_chunk[a:b] == k)
         masks[a + mine] = r.masks[mine]
         for w in r.windows:
-            windows.append({**w, "chunk": k, "frames": [w["frames"][0] + a, w["frames"][1] + a]})
+            windows.append(dataclasses.replace(w, chunk=k, frames=(w.frames[0] + a, w.frames[1] + a)))
     return pipeline.SequenceResult(poses=np.asarray(res.sequence.cam_to_world), prior=np.asarray(prior),
                                    masks=masks, windows=windows, sequence=res.sequence)
 

@@ -93,8 +93,7 @@ def load_visit(scene: int, visit: int, frames: int, wcfg: synthetic.WorldConfig,
 
 def recalled_earlier_map(result) -> bool:
     """Whether a window of this sequence verified a recall of a map it did not create itself."""
-    created = {w["map_id"] for w in result.windows if w["created_map"]}
-    return any(w["accepted"] and w["recalled_map"] >= 0 and w["recalled_map"] not in created for w in result.windows)
+    return pipeline.recalled_earlier_map(result.windows)
 
 
 def revisit_runs(scene: int, frames: int, wcfg: synthetic.WorldConfig, no_memory: bool = True,
@@ -178,7 +177,7 @@ def scene_row(scene: int, frames: int, wcfg, quick: bool, use_cache: bool = Fals
     pnp, pnp_ok = pnp_baseline(seq, mem.masks, quick)
     est = {"prior": seq.cam_to_world, "pnp": pnp, "no_memory": nomem.poses, "memory": mem.poses}
     row = {"scene": scene, "recalled": recalled_earlier_map(mem), "pnp_ok": pnp_ok,
-           "memory_landmarks": int(sum(w["memory_landmarks"] for w in mem.windows if w["memory_used"])),
+           "memory_landmarks": int(sum(w.memory_landmarks for w in mem.windows if w.memory_used)),
            "ate_visit1_prior": evaluate(run["seqs"][0], run["seqs"][0].cam_to_world)["ate"],
            "ate_visit1_cm3d": evaluate(run["seqs"][0], run["res_mem"][0].poses)["ate"]}
     for m, poses in est.items():

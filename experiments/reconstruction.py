@@ -95,20 +95,20 @@ def bank_map(bank, result, earlier_only: bool):
     recall's Sim(3) query -> map), and whether it is a map of an earlier visit. ``earlier_only``:
     only a recall of a map this sequence did not create counts; without one, (None, False).
     Otherwise falls back to the map the sequence wrote last (its own frame)."""
-    created = {w["map_id"] for w in result.windows if w["created_map"]}
-    acc = [w for w in result.windows if w["accepted"] and w["recalled_map"] >= 0 and w["recalled_map"] not in created]
+    created = {w.map_id for w in result.windows if w.created_map}
+    acc = [w for w in result.windows if w.accepted and w.recalled_map >= 0 and w.recalled_map not in created]
     if acc:
         w = acc[-1]
-        m, T = w["recalled_map"], np.asarray(w["transform"], np.float64)
+        m, T = w.recalled_map, np.asarray(w.transform, np.float64)
     elif earlier_only:
         return None, False
     else:
-        written = [w for w in result.windows if w["map_id"] >= 0]
+        written = [w for w in result.windows if w.map_id >= 0]
         if not written:
             return None, False
         w = written[-1]
-        m = w["map_id"]
-        T = np.eye(4) if w["created_map"] else np.asarray(w["transform"], np.float64)
+        m = w.map_id
+        T = np.eye(4) if w.created_map else np.asarray(w.transform, np.float64)
     ok = np.asarray(bank.point_valid[m])
     pts = np.asarray(bank.points[m], np.float64)[ok]
     return (pts - T[:3, 3]) @ np.linalg.inv(T[:3, :3]).T, bool(acc)

@@ -53,7 +53,7 @@ def test_masks_json_and_pictures(tmp_path):
 def _toy_result(with_gt: bool = True):
     """A hand-made SequenceResult (no pipeline run): a camera sliding along x over a plane at z = 2."""
     from cm3d.data.sequence import GroundTruth, Sequence
-    from cm3d.pipeline import SequenceResult
+    from cm3d.pipeline import SequenceResult, WindowRecord
 
     S, H, W = 4, 16, 20
     K = np.broadcast_to(np.array([[20.0, 0, 9.5], [0, 20.0, 7.5], [0, 0, 1]]), (S, 3, 3)).copy()
@@ -68,11 +68,12 @@ def _toy_result(with_gt: bool = True):
                    cam_to_world=poses, timestamps=np.arange(S) * 0.1, gt=gt)
     noisy = poses.copy()
     noisy[:, 1, 3] += 0.01 * np.array([0.0, 1.0, -1.0, 0.5])
-    win = {"frames": [0, 3], "memory": True, "candidates": [], "votes": [], "scores": [], "keypoint_inliers": [],
-           "accepted": False, "recalled_map": -1, "inlier_count": 0, "rmse": 0.0, "fitness": 0.0, "scale": 1.0,
-           "transform": np.eye(4).tolist(), "map_id": 0, "created_map": True, "refined": True, "gate_stat": 1.0,
-           "gate_threshold": 0.5, "landmarks": 3, "memory_landmarks": 0, "observations": 9, "inliers": 9,
-           "lm_iterations": 2}
+    win = WindowRecord(frames=(0, 3), memory=True, candidates=(), votes=(), scores=(), keypoint_inliers=(),
+                       accepted=False, recalled_map=-1, inlier_count=0, rmse=0.0, fitness=0.0, scale=1.0,
+                       transform=np.eye(4), placement=np.eye(4), map_id=0, created_map=True, refined=True,
+                       gate_stat=1.0, gate_threshold=0.5, landmarks=3, memory_landmarks=0, memory_used=False,
+                       memory_stat=0.0, memory_threshold=0.0, inconsistent_tracks=0, observations=9, inliers=9,
+                       lm_iterations=2)
     return SequenceResult(poses=poses, prior=noisy, masks=masks, windows=[win], sequence=seq)
 
 

@@ -78,11 +78,11 @@ def test_scan_equals_python_loop_of_step(prepared, scanned):
 def test_windows_refine_every_frame(visits, scanned):
     out = scanned["outs"][0]
     res = pipeline.collect(out, visits[0], CFG)
-    assert [w["frames"] for w in res.windows] == [[0, 4], [4, 7]]
+    assert [w.frames for w in res.windows] == [(0, 4), (4, 7)]
     assert res.poses.shape == (8, 4, 4) and np.all(np.isfinite(res.poses))
     assert res.masks.shape == (8, 48, 64) and res.masks.dtype == bool
     # every frame got a pose from a window; the anchor frame 4 is shared by both windows
-    assert all(w["landmarks"] > 0 and w["observations"] > 0 for w in res.windows)
+    assert all(w.landmarks > 0 and w.observations > 0 for w in res.windows)
     np.testing.assert_allclose(res.poses[0], visits[0].cam_to_world[0], atol=1e-4)
 
 
@@ -122,22 +122,22 @@ def test_recall_feeds_the_same_window_and_memory_never_hurts(visits, exact0, sca
     mem_cfg = pipeline.small_config()
     noisy = visits[0]  # same images as exact0, moderate priors
     bank, (first, again) = pipeline.run([exact0, noisy], mem_cfg)
-    assert first.windows[0]["created_map"] and first.windows[0]["map_id"] == 0
+    assert first.windows[0].created_map and first.windows[0].map_id == 0
     assert int(bank.map_valid.sum()) == 1  # visit 1's second window and the revisit merged into map 0
     w = again.windows[0]
-    assert w["candidates"] and w["candidates"][0] == 0
-    assert w["accepted"] and w["recalled_map"] == 0 and not w["created_map"]
+    assert w.candidates and w.candidates[0] == 0
+    assert w.accepted and w.recalled_map == 0 and not w.created_map
     # the memory solve ran in the recalling window (its chi2 test evaluated); at 48x64 only 0-3 of its
     # ~60 landmarks fall within tau of the recalled surface, so their count is not asserted here
     # (the 384x512 demo associates ~200 per window)
-    assert w["memory_threshold"] > 0
-    assert all(np.isfinite(x["memory_stat"]) for x in again.windows)
+    assert w.memory_threshold > 0
+    assert all(np.isfinite(x.memory_stat) for x in again.windows)
     # the placement the memory used (verification re-fitted to the landmarks) is a proper Sim(3)
-    A = np.asarray(w["placement"])[:3, :3]
+    A = np.asarray(w.placement)[:3, :3]
     s = np.cbrt(np.linalg.det(A))
     np.testing.assert_allclose(A @ A.T / s ** 2, np.eye(3), atol=1e-4)
     alone = pipeline.collect(scanned["outs"][0], noisy, CFG)
-    assert all(x["memory_landmarks"] == 0 and not x["memory_used"] for x in alone.windows)
+    assert all(x.memory_landmarks == 0 and not x.memory_used for x in alone.windows)
     assert np.all(np.isfinite(again.poses))
     assert _ate(noisy, again.poses) <= _ate(noisy, alone.poses) + 1e-6
 
@@ -154,8 +154,8 @@ def test_memory_without_a_recall_leaves_the_sequence_as_memory_off(visits, prepa
     st = pipeline.init_state(prepared[1], mem_cfg)
     _, out = pipeline.run_sequence(st, prepared[1], mem_cfg)
     own = pipeline.collect(out, visits[1], mem_cfg)
-    assert own.windows[0]["created_map"] and own.windows[1]["map_id"] == own.windows[0]["map_id"]
-    assert not any(w["accepted"] or w["memory_used"] for w in own.windows)
+    assert own.windows[0].created_map and own.windows[1].map_id == own.windows[0].map_id
+    assert not any(w.accepted or w.memory_used for w in own.windows)
     alone = pipeline.collect(scanned["outs"][1], visits[1], CFG)
     np.testing.assert_allclose(own.poses, alone.poses, atol=1e-5)
     assert _ate(visits[1], own.poses) <= _ate(visits[1], alone.poses) + 1e-9
