@@ -9,10 +9,10 @@ own depth and pose noise) at every noise level. Compared (ATE in metres, Sim(3)-
 protocol, :func:`cm3d.eval.metrics.evaluate_trajectories`):
 
 * naive: each chunk placed rigidly on the previous chunk's pose of their first shared frame, scale
-  ignored (:func:`cm3d.stitch.naive_stitch`);
+  ignored (:func:`cm3d.long_video.naive_stitch`);
 * cm3d align: robust Sim(3) per boundary on the shared frames, chained and fused
-  (:func:`cm3d.stitch.stitch_chunks` with ``refine=False``);
-* cm3d refined: plus the whole-trajectory refinement (:func:`cm3d.stitch.refine_frames`): one pose
+  (:func:`cm3d.long_video.stitch_chunks` with ``refine=False``);
+* cm3d refined: plus the whole-trajectory refinement (:func:`cm3d.long_video.refine_frames`): one pose
   graph over every frame, a prior per frame at the stitched pose and a relative-motion factor per
   consecutive frame pair measured from the images (optical flow + both frames' depth, robust
   Sim(3)), across chunk boundaries alike, noise levels by variance component estimation, solved by
@@ -27,14 +27,13 @@ errors against the true relative scales (``scale_err_max_<level>``).
 Loop variant (``--loop-level``, default moderate; not in ``--quick``): the same scene, a camera path
 that comes back to its start (``synthetic.generate_long_video(loop=True)``), the same chunking.
 Compared: naive stitching, overlap stitching (Sim(3) alignment, as above), and
-:func:`cm3d.stitch.stitch_with_memory`: every chunk through the pipeline threading one memory bank,
+:func:`cm3d.long_video.stitch_with_memory`: every chunk through the pipeline threading one memory bank,
 each recall of a map made two or more chunks earlier a Sim(3) loop constraint, and a Sim(3) pose
 graph over the chunk transforms (overlap + loop constraints), then the whole-trajectory
 refinement. Keys: ``ate_loop_naive``, ``ate_loop_stitch``, ``ate_loop_chained`` (the chain of
-overlap alignments before the pose graph), ``ate_loop`` (+ the loop as the memory registered it,
-the default), ``ate_loop_measured`` (+ the loop measured frame to frame instead,
-:func:`cm3d.stitch.measure_loop`), ``ate_loop_refined`` (the default's whole-trajectory
-refinement), ``ate_loop_stitch_refined`` (overlap stitching + refinement, no loop),
+overlap alignments before the pose graph), ``ate_loop`` (+ the loop as the memory registered it),
+``ate_loop_refined`` (its whole-trajectory refinement), ``ate_loop_stitch_refined`` (overlap stitching
++ refinement, no loop),
 ``loops_recalled``, ``loops_kept``, ``loop_improvement`` (= 1 − ate_loop / ate_loop_stitch),
 ``loop_improvement_refined`` (= 1 − ate_loop_refined / ate_loop_stitch_refined), ``loop_pipeline_s``.
 The drifting loop variant (``--loop-drift``, default 3: the priors' random-walk drift x 3, chosen
@@ -43,7 +42,7 @@ before measuring) repeats it with ``ate_loopdrift_*`` keys. And what limits it:
 placement, loop or not), ``ate_loop_forced`` (the recalled loops forced in at σ × 2, as accurate as
 an overlap, no consistency check), ``ate_loop_true_constraint`` (the same with the loop at its
 ground-truth value), and the widest loop's Sim(3) errors against the truth,
-``loop_err_{rot_deg,log_scale,centre_m}_{memory,prior_frames,measured,chain}`` (the memory's transform
+``loop_err_{rot_deg,log_scale,centre_m}_{memory,prior_frames,chain}`` (the memory's transform
 between the windows' refined frames, the same re-expressed between the chunks' prior frames as the
 pose graph uses it, and the chain of overlap alignments); the straight
 video through the same memory stitching: ``ate_straight_memory`` (vs ``ate_straight_chained``),
@@ -60,7 +59,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from cm3d import stitch  # noqa: E402
+from cm3d import long_video as stitch  # noqa: E402
 from cm3d.data import synthetic  # noqa: E402
 from cm3d.outputs import write_json  # noqa: E402
 from cm3d.eval import metrics  # noqa: E402
@@ -118,8 +117,8 @@ def sim3_errors(T, truth, poses, unit):
 
 def run_loop(args, level, drift: float = 1.0):
     """The loop variant: naive vs overlap stitching vs overlap + loop closure (the memory's
-    registration, and measured frame to frame) vs + the whole-trajectory refinement, with the loop
-    constraint measured against the ground truth."""
+    registration) vs + the whole-trajectory refinement, with the loop constraint measured against
+    the ground truth."""
     cfg = synthetic.WorldConfig(height=args.height, width=args.width)
     t0 = time.perf_counter()
     chunks, images, gt = synthetic.generate_long_video(args.scene, 0, args.frames, args.chunk, args.overlap, level,
@@ -135,20 +134,16 @@ def run_loop(args, level, drift: float = 1.0):
     # overlap stitching + the same refinement (the same static masks: the pipeline's), no loop
     static = ~stitch.memory_sequence_result(mem, chunks).masks
     aligned_refined = stitch.stitch_chunks(chunks, static=static, refine=True)
-    coarse = mem
-    measured = stitch.stitch_with_memory(chunks, results=mem.results, measure_loops=True, refine=False)
     f = mem.refinement
     G0, Gt = f["chained_transforms"], true_chunk_transforms(chunks)
     out = {"ate_loop_naive": ev(naive.sequence.cam_to_world), "ate_loop_stitch": ev(aligned.sequence.cam_to_world),
            "ate_loop_stitch_refined": ev(aligned_refined.sequence.cam_to_world),
            "ate_loop_chained": ev(mem.poses_aligned), "ate_loop": ev(f["poses_stitched"]),
-           "ate_loop_measured": ev(measured.sequence.cam_to_world), "ate_loop_refined": ev(mem.sequence.cam_to_world),
+           "ate_loop_refined": ev(mem.sequence.cam_to_world),
            "loop_refine_kept": bool(mem.refined),
            # the floor of any chunk placement: every chunk placed by its ground-truth Sim(3)
            "ate_loop_true_transforms": ev(stitch.place_chunks(chunks, Gt).cam_to_world),
            "loops_recalled": len(mem.loops), "loops_kept": f["loops_kept"],
-           "loops_measured": measured.refinement["loops_measured"],
-           "loops_kept_measured": measured.refinement["loops_kept"],
            "loop_discrepancy_max": f["loop_discrepancy_max"], "loop_limit": f["loop_limit"],
            "loop_recalls": f["recalls"], "loop_windows": f["windows"], "loop_pipeline_s": f["pipeline_s"],
            "loop_time_s": t_mem, "loop_render_s": t_render, "loop_drift": drift,
@@ -156,23 +151,21 @@ def run_loop(args, level, drift: float = 1.0):
            "loop_pairs": [f"{lc.chunk}->{lc.other}" for lc in mem.loops], "loop_level": level}
     if mem.loops:  # the loop across the most chunks (the camera back at its start)
         i = max(range(len(mem.loops)), key=lambda n: (mem.loops[n].chunk - mem.loops[n].other, -n))
-        lc, lm = measured.loops[i], coarse.loops[i]
+        lc = mem.loops[i]
         a, b = lc.other, lc.chunk
         truth = np.linalg.inv(Gt[a]) @ Gt[b]
         poses = chunks[b].cam_to_world[lc.frames[0]:lc.frames[1] + 1]
         unit = chunks[a].meta["prior_scale"]
-        for name, T in (("memory", lm.measured), ("prior_frames", lm.transform), ("measured", lc.transform),
+        for name, T in (("memory", lc.measured), ("prior_frames", lc.transform),
                         ("chain", np.linalg.inv(G0[a]) @ G0[b])):
             for k, v in sim3_errors(T, truth, poses, unit).items():
                 out[f"loop_err_{k}_{name}"] = v
-        out["loop_frame_pairs"] = lc.pairs
         # every loop forced in (no consistency check) at σ x 2, as if as accurate as an overlap
         A = np.stack([np.eye(4)] + [np.linalg.inv(G0[k - 1]) @ G0[k] for k in range(1, len(chunks))])
         forced = stitch.PoseGraphConfig(loop_quantile=1.0, loop_factor=2.0)
-        G, _ = stitch.sim3_pose_graph(G0, A, coarse.loops, forced)
+        G, _ = stitch.sim3_pose_graph(G0, A, mem.loops, forced)
         out["ate_loop_forced"] = ev(stitch.place_chunks(chunks, G).cam_to_world)
-        truth_loops = [dataclasses.replace(x, transform=np.linalg.inv(Gt[x.other]) @ Gt[x.chunk], sigma=None)
-                       for x in coarse.loops]
+        truth_loops = [dataclasses.replace(x, transform=np.linalg.inv(Gt[x.other]) @ Gt[x.chunk]) for x in mem.loops]
         G, _ = stitch.sim3_pose_graph(G0, A, truth_loops, forced)
         out["ate_loop_true_constraint"] = ev(stitch.place_chunks(chunks, G).cam_to_world)
     out["loop_improvement"] = 1.0 - out["ate_loop"] / out["ate_loop_stitch"]
@@ -181,7 +174,7 @@ def run_loop(args, level, drift: float = 1.0):
 
 
 def run_straight_memory(images, gt, level, args, cfg):
-    """The straight (non-loop) video through :func:`cm3d.stitch.stitch_with_memory`: what loop
+    """The straight (non-loop) video through :func:`cm3d.long_video.stitch_with_memory`: what loop
     closures from memory recall do where the camera does not come back."""
     ts = np.arange(len(images)) / cfg.fps
     chunks = synthetic.make_chunk_priors(images, gt, args.chunk, args.overlap, level, seed=args.scene, timestamps=ts)
@@ -195,17 +188,16 @@ def run_straight_memory(images, gt, level, args, cfg):
 def print_loop(lp, title="loop variant"):
     print(f"\n{title} ({lp['loop_level']} noise, prior drift x{lp['loop_drift']:g}; the camera ends "
           f"{lp['loop_end_to_start_m']:.2f} m from its start): {lp['loops_recalled']} loop closures recalled across "
-          f"chunks {lp['loop_pairs']} ({lp['loops_measured']} measured frame to frame; kept by the consistency "
-          f"check: {lp['loops_kept']} as registered by the memory, {lp['loops_kept_measured']} measured; worst "
+          f"chunks {lp['loop_pairs']} (kept by the consistency check: {lp['loops_kept']}; worst "
           f"discrepancy {lp['loop_discrepancy_max']:.1f} vs chi2 limit {lp['loop_limit']:.1f}; {lp['loop_recalls']} "
           f"recalls in {lp['loop_windows']} windows; pipeline {lp['loop_pipeline_s']:.0f} s)\n")
-    head = (f"{'ATE naive':>10} {'overlap':>9} {'+ loop (memory)':>16} {'+ loop (measured)':>18} | {'vs overlap':>10} "
+    head = (f"{'ATE naive':>10} {'overlap':>9} {'+ loop (memory)':>16} | {'vs overlap':>10} "
             f"|| {'overlap+refine':>14} {'loop+refine':>12} | {'vs':>7} || {'forced σx2':>11} {'true loop':>10} "
             f"{'true chunks':>11}")
     print(head + "\n" + "-" * len(head))
     na = lambda k: f"{lp[k]:.4f}" if k in lp else "-"  # noqa: E731
     print(f"{lp['ate_loop_naive']:>10.4f} {lp['ate_loop_stitch']:>9.4f} {lp['ate_loop']:>16.4f} "
-          f"{lp['ate_loop_measured']:>18.4f} | {100 * lp['loop_improvement']:>9.1f}% || "
+          f"| {100 * lp['loop_improvement']:>9.1f}% || "
           f"{lp['ate_loop_stitch_refined']:>14.4f} "
           f"{lp['ate_loop_refined']:>12.4f} | {100 * lp['loop_improvement_refined']:>6.1f}% || "
           f"{na('ate_loop_forced'):>11} {na('ate_loop_true_constraint'):>10} {lp['ate_loop_true_transforms']:>11.4f}")
@@ -214,7 +206,6 @@ def print_loop(lp, title="loop variant"):
               "recalling window's cameras):")
         for name, label in (("memory", "memory recall (refined window frames)"),
                             ("prior_frames", "memory recall in the chunks' prior frames"),
-                            ("measured", f"measured frame to frame ({lp['loop_frame_pairs']} pairs)"),
                             ("chain", "chain of overlap alignments")):
             print(f"  {label:<44} {lp[f'loop_err_rot_deg_{name}']:6.2f} deg  {lp[f'loop_err_log_scale_{name}']:+.4f}  "
                   f"{lp[f'loop_err_centre_m_{name}']:.4f} m")

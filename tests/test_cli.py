@@ -205,7 +205,7 @@ def test_generate_and_run_folder_inputs(tmp_path, fmt, capsys):
 def test_run_chunks_with_memory_from_several_files_or_one(tmp_path, capsys):
     """Chunks of one video: the pipeline per chunk threading the memory, overlap alignment, the usual
     outputs plus stitch.json; the saved bank is recalled by a second run (the one-file form)."""
-    from cm3d import stitch
+    from cm3d import long_video as stitch
     from cm3d.data import synthetic
 
     wcfg = synthetic.WorldConfig(height=48, width=64, supersample=1)
@@ -230,7 +230,7 @@ def test_run_chunks_with_memory_from_several_files_or_one(tmp_path, capsys):
     assert [w["chunk"] for w in rec] == [0, 1] and [w["frames"] for w in rec] == [[0, 4], [3, 7]]
     assert rec[0]["created_map"]
     # trajectory_prior.txt: the chunks' priors aligned on their overlap (the stitching library's
-    # answer); trajectory.txt: its whole-trajectory refinement (stitch.refine_frames) when kept
+    # answer); trajectory.txt: its whole-trajectory refinement (long_video.refine_frames) when kept
     ref = stitch.stitch_chunks(chunks, refine=False).sequence.cam_to_world
     np.testing.assert_allclose(io.read_tum(a / "trajectory_prior.txt")[1], ref, atol=1e-6)
     traj = io.read_tum(a / "trajectory.txt")[1]

@@ -1,4 +1,4 @@
-"""Long-video stitching (cm3d.stitch): Sim(3) alignment, chaining, naive baseline, errors, chunk files."""
+"""Long videos (cm3d.long_video): Sim(3) alignment, chaining, naive baseline, frame graph, loops, chunk files."""
 
 import dataclasses
 
@@ -6,7 +6,10 @@ import jax
 import numpy as np
 import pytest
 
-from cm3d import stitch
+from cm3d import long_video as stitch
+from cm3d.long_video.overlap import shared_frames
+from cm3d.solvers.block_tridiagonal import block_tridiagonal
+from cm3d.solvers.chain_pose_graph import solve_chain
 from cm3d.data import io, synthetic
 from cm3d.eval import metrics
 
@@ -54,16 +57,15 @@ def test_align_overlap_recovers_known_similarity(video):
     """A chunk and a copy moved by a known Sim(3) (depth scaled by its scale): the fit is that Sim(3)."""
     c = chunks_at(video, "none")[1]
     Q, s = random_similarity(np.random.default_rng(3))
-    with jax.enable_x64(True):
-        moved = np.asarray(stitch.place_poses(stitch._f(Q), stitch._f(c.cam_to_world)))
-        o = OVERLAP
-        prev = stitch._shared(c, slice(0, o))
-        nxt = (stitch._f(c.depth[:o] * s), stitch._f(c.intrinsic[:o]), stitch._f(moved[:o]))
-        A, diag = stitch.align_overlap(prev, nxt)
-    # exact up to the float32 depth maps
-    np.testing.assert_allclose(np.asarray(A), np.linalg.inv(Q), atol=1e-6)
-    assert abs(float(diag["scale"]) * s - 1) < 1e-6
-    assert float(diag["rmse_points"]) < 1e-6 and float(diag["inlier_fraction"]) > 0.99
+    moved = stitch.place_poses(Q, c.cam_to_world)
+    o = OVERLAP
+    with jax.enable_x64(True):  # float64 inputs: the fit is exact up to the float32 depth maps
+        prev = shared_frames(c, slice(0, o))
+        nxt = shared_frames(c.replace(depth=c.depth * s, cam_to_world=moved), slice(0, o))
+        fit = stitch.align_overlap(prev, nxt)
+    np.testing.assert_allclose(np.asarray(fit.transform), np.linalg.inv(Q), atol=1e-6)
+    assert abs(float(fit.scale) * s - 1) < 1e-6
+    assert float(fit.rmse_points) < 1e-6 and float(fit.inlier_fraction) > 0.99
 
 
 def test_noise_free_stitch_equals_ground_truth(video, noise_free):
@@ -100,27 +102,6 @@ def test_cm3d_beats_naive_on_noisy_chunks(video):
     assert np.mean([b.rel_rmse_points for b in res.boundaries]) < np.mean([b.rel_rmse_points for b in naive.boundaries])
     s = res.summary()
     assert s["num_chunks"] == len(chunks) and "boundary1_scale" in s
-
-
-def test_refine_check_refuses_a_drifting_refinement(noise_free, monkeypatch):
-    """The factor graph's result is kept only when it stays within the overlap-measured noise."""
-    seq = noise_free[1].sequence
-    P = seq.cam_to_world
-
-    def fake(distort):
-        def refine_poses(s, static=None, cfg=None, pad_to=None):
-            Q = P.copy()
-            Q[:, :3, 3] *= 1 + distort * np.linspace(0, 1, len(Q))[:, None]  # scale drift
-            return Q, True, {"observations": 1}
-        return refine_poses
-
-    monkeypatch.setattr(stitch, "refine_poses", fake(0.0))
-    poses, refined, kept, facts = stitch.refine_checked(seq, noise=1e-3)
-    assert kept and facts["deviation"] < 1e-9
-    monkeypatch.setattr(stitch, "refine_poses", fake(0.5))
-    poses, refined, kept, facts = stitch.refine_checked(seq, noise=1e-3)
-    assert not kept and facts["deviation"] > facts["deviation_limit"]
-    np.testing.assert_array_equal(poses, P)
 
 
 def test_single_chunk_is_returned_as_is(video):
@@ -201,37 +182,38 @@ def test_sim3_pose_graph_closes_a_loop():
     """Chunk transforms chained from drifting overlap constraints (rotation, translation and scale
     drift): with a loop constraint between the last and the first chunk the pose graph spreads the
     drift back (the loop chunk's error falls), and with exact constraints it returns the truth."""
-    rng = np.random.default_rng(0)
-    K = 6
-    G_true = [np.eye(4)]
-    for _ in range(1, K):
-        G_true.append(G_true[-1] @ _sim3(rng, 0.2, 0.5, 0.1))
-    G_true = np.stack(G_true)
-    A_true = np.stack([np.eye(4)] + [np.linalg.inv(G_true[k - 1]) @ G_true[k] for k in range(1, K)])
-    drift = _sim3(rng, 0.01, 0.02, 0.02)  # the same small error at every boundary: a drift
-    A = np.stack([np.eye(4)] + [A_true[k] @ drift for k in range(1, K)])
-    G0 = np.stack([np.linalg.multi_dot([np.eye(4)] + [A[j] for j in range(1, k + 1)]) if k else np.eye(4)
-                   for k in range(K)])
-    loop = stitch.LoopClosure(chunk=K - 1, other=0, frames=(0, 20), transform=G_true[K - 1], inliers=100, rmse=0.01)
-    G, facts = stitch.sim3_pose_graph(G0, A, [loop], stitch.PoseGraphConfig(loop_quantile=1.0, loop_factor=2.0))
-    err = lambda X: float(np.linalg.norm(X[K - 1][:3, 3] - G_true[K - 1][:3, 3]))  # noqa: E731
-    assert facts["loops"] == 1 and facts["cost"] < facts["cost_initial"]
-    assert err(G) < 0.5 * err(G0)
-    np.testing.assert_allclose(G[0], np.eye(4), atol=1e-12)  # the gauge
-    # exact constraints: the truth is the optimum
-    G, facts = stitch.sim3_pose_graph(G0, A_true, [loop])
-    np.testing.assert_allclose(G, G_true, atol=1e-6)
-    assert facts["cost"] < 1e-12
-    # the consistency check: with the default (coarse) loop noise this drift is plausible and the loop
-    # is kept with a small weight; a loop to the wrong place (30°, 3 units off) is refused, chain kept
-    G, facts = stitch.sim3_pose_graph(G0, A, [loop])
-    assert facts["loops_kept"] == 1 and facts["loop_kept"] == [True] and err(G) < err(G0)
-    wrong = dataclasses.replace(loop, transform=G_true[K - 1] @ _sim3(rng, 0.5, 3.0, 0.0))
-    G, facts = stitch.sim3_pose_graph(G0, A, [wrong])
-    assert facts["loops_kept"] == 0 and facts["loop_discrepancy_max"] > facts["loop_limit"]
-    np.testing.assert_allclose(G, G0, atol=1e-9)
-    with pytest.raises(stitch.StitchError, match="distinct chunks"):
-        stitch.sim3_pose_graph(G0, A, [stitch.LoopClosure(2, 2, (0, 1), np.eye(4), 0, 0.0)])
+    with jax.enable_x64(True):  # float64 inputs: the exact-constraint optimum is checked to 1e-12
+        rng = np.random.default_rng(0)
+        K = 6
+        G_true = [np.eye(4)]
+        for _ in range(1, K):
+            G_true.append(G_true[-1] @ _sim3(rng, 0.2, 0.5, 0.1))
+        G_true = np.stack(G_true)
+        A_true = np.stack([np.eye(4)] + [np.linalg.inv(G_true[k - 1]) @ G_true[k] for k in range(1, K)])
+        drift = _sim3(rng, 0.01, 0.02, 0.02)  # the same small error at every boundary: a drift
+        A = np.stack([np.eye(4)] + [A_true[k] @ drift for k in range(1, K)])
+        G0 = np.stack([np.linalg.multi_dot([np.eye(4)] + [A[j] for j in range(1, k + 1)]) if k else np.eye(4)
+                       for k in range(K)])
+        loop = stitch.LoopClosure(chunk=K - 1, other=0, frames=(0, 20), transform=G_true[K - 1], inliers=100, rmse=0.01)
+        G, facts = stitch.sim3_pose_graph(G0, A, [loop], stitch.PoseGraphConfig(loop_quantile=1.0, loop_factor=2.0))
+        err = lambda X: float(np.linalg.norm(X[K - 1][:3, 3] - G_true[K - 1][:3, 3]))  # noqa: E731
+        assert facts["loops"] == 1 and facts["cost"] < facts["cost_initial"]
+        assert err(G) < 0.5 * err(G0)
+        np.testing.assert_allclose(G[0], np.eye(4), atol=1e-12)  # the gauge
+        # exact constraints: the truth is the optimum
+        G, facts = stitch.sim3_pose_graph(G0, A_true, [loop])
+        np.testing.assert_allclose(G, G_true, atol=1e-6)
+        assert facts["cost"] < 1e-12
+        # the consistency check: with the default (coarse) loop noise this drift is plausible and the loop
+        # is kept with a small weight; a loop to the wrong place (30°, 3 units off) is refused, chain kept
+        G, facts = stitch.sim3_pose_graph(G0, A, [loop])
+        assert facts["loops_kept"] == 1 and facts["loop_kept"] == [True] and err(G) < err(G0)
+        wrong = dataclasses.replace(loop, transform=G_true[K - 1] @ _sim3(rng, 0.5, 3.0, 0.0))
+        G, facts = stitch.sim3_pose_graph(G0, A, [wrong])
+        assert facts["loops_kept"] == 0 and facts["loop_discrepancy_max"] > facts["loop_limit"]
+        np.testing.assert_allclose(G, G0, atol=1e-9)
+        with pytest.raises(stitch.StitchError, match="distinct chunks"):
+            stitch.sim3_pose_graph(G0, A, [stitch.LoopClosure(2, 2, (0, 1), np.eye(4), 0, 0.0)])
 
 
 def test_recall_loops_from_window_records(noise_free):
@@ -241,8 +223,8 @@ def test_recall_loops_from_window_records(noise_free):
     from types import SimpleNamespace
 
     def win(acc, rec, created, map_id, T=np.eye(4)):
-        return {"accepted": acc, "recalled_map": rec, "created_map": created, "map_id": map_id, "frames": [0, 20],
-                "transform": T.tolist(), "inlier_count": 50, "rmse": 0.01}
+        return SimpleNamespace(accepted=acc, recalled_map=rec, created_map=created, map_id=map_id, frames=(0, 20),
+                               transform=T, inlier_count=50, rmse=0.01)
 
     T = np.diag([2.0, 2.0, 2.0, 1.0])
     results = [SimpleNamespace(windows=[win(False, -1, True, 0)]),
@@ -258,9 +240,7 @@ def test_recall_loops_from_window_records(noise_free):
     chunks = noise_free[0][:2]
     rng = np.random.default_rng(1)
     Q = [_sim3(rng, 0.05, 0.1, 0.0) for _ in chunks]
-    with jax.enable_x64(True):
-        res = [SimpleNamespace(poses=np.asarray(stitch.place_poses(stitch._f(q), stitch._f(c.cam_to_world))))
-               for q, c in zip(Q, chunks)]
+    res = [SimpleNamespace(poses=stitch.place_poses(q, c.cam_to_world)) for q, c in zip(Q, chunks)]
     lc = stitch.LoopClosure(chunk=1, other=0, frames=(0, OVERLAP - 1), transform=T, inliers=50, rmse=0.01,
                             other_frames=(CHUNK - OVERLAP, CHUNK - 1))
     fixed = stitch.loop_to_prior_frames(lc, chunks, res)
@@ -273,20 +253,25 @@ def test_recall_loops_from_window_records(noise_free):
 def test_memory_sequence_result_for_the_writers(video):
     """The whole-video result handed to the output writers: masks from the chunk each frame's image
     comes from, windows renumbered to global frames and tagged with their chunk."""
-    import dataclasses
     from types import SimpleNamespace
+
+    @dataclasses.dataclass(frozen=True)
+    class Window:  # the fields of the pipeline's window record that the writers' renumbering touches
+        frames: tuple
+        accepted: bool = False
+        chunk: int | None = None
 
     chunks = chunks_at(video, "moderate")
     base = stitch.stitch_chunks(chunks, refine=False)
     H, W = chunks[0].image_size
     fake = [SimpleNamespace(masks=np.full((c.num_frames, H, W), k % 2 == 1),
-                            windows=[{"frames": [0, c.num_frames - 1], "accepted": False}])
+                            windows=[Window(frames=(0, c.num_frames - 1))])
             for k, c in enumerate(chunks)]
     res = dataclasses.replace(base, method="cm3d-memory", results=tuple(fake))
     out = stitch.memory_sequence_result(res, chunks)
     np.testing.assert_array_equal(out.masks.any(axis=(1, 2)), res.frame_chunk % 2 == 1)
-    assert [w["chunk"] for w in out.windows] == list(range(len(chunks)))
-    assert [w["frames"][0] for w in out.windows] == [a for a, _ in res.ranges]
+    assert [w.chunk for w in out.windows] == list(range(len(chunks)))
+    assert [w.frames[0] for w in out.windows] == [a for a, _ in res.ranges]
     np.testing.assert_allclose(out.prior, base.sequence.cam_to_world)
     with pytest.raises(stitch.StitchError, match="stitch_with_memory"):
         stitch.memory_sequence_result(base, chunks)
@@ -319,10 +304,10 @@ def test_whole_trajectory_refinement_lowers_error_and_survives_a_bad_chunk(video
     H *= np.abs(np.subtract.outer(np.arange(6 * n) // 6, np.arange(6 * n) // 6)) <= 1
     b = rng.normal(size=6 * n)
     blk = lambda i, j: H[6 * i:6 * i + 6, 6 * j:6 * j + 6]  # noqa: E731
-    with jax.enable_x64(True):
-        D = stitch._f(np.stack([blk(i, i) for i in range(n)]))
-        U = stitch._f(np.stack([blk(i, i + 1) for i in range(n - 1)]))
-        x, Pd, C = (np.asarray(v) for v in stitch._block_tridiagonal(D, U, stitch._f(b.reshape(n, 6))))
+    with jax.enable_x64(True):  # float64: checked against NumPy to 1e-9
+        D = jax.numpy.asarray(np.stack([blk(i, i) for i in range(n)]))
+        U = jax.numpy.asarray(np.stack([blk(i, i + 1) for i in range(n - 1)]))
+        x, Pd, C = (np.asarray(v) for v in block_tridiagonal(D, U, jax.numpy.asarray(b.reshape(n, 6))))
         Hi = np.linalg.inv(H)
         np.testing.assert_allclose(x.ravel(), np.linalg.solve(H, b), rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(Pd, np.stack([Hi[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(n)]), atol=1e-12)
@@ -331,23 +316,5 @@ def test_whole_trajectory_refinement_lowers_error_and_survives_a_bad_chunk(video
         P = res.poses_aligned
         ia = np.arange(FRAMES - 1)
         g = stitch.frame_graph(P, ia, ia + 1, np.linalg.inv(P[ia]) @ P[ia + 1], np.full(6, 0.01), np.full(6, 0.1))
-        out = stitch.solve_frame_graph(g, stitch._f(P))
-    np.testing.assert_allclose(float(np.sum(out[2]) + np.sum(out[4])), 6 * FRAMES, rtol=1e-6)
-
-
-def test_measure_loop_recovers_a_known_similarity(noise_free):
-    """A loop between a chunk and a copy of it moved by a known Sim(3): every frame pairs with
-    itself, the flow is zero and the measured loop is that Sim(3), with a tiny sigma."""
-    chunks, res = noise_free
-    c = chunks[0]
-    Q, s = random_similarity(np.random.default_rng(5))
-    with jax.enable_x64(True):
-        moved = c.replace(cam_to_world=np.asarray(stitch.place_poses(stitch._f(Q), stitch._f(c.cam_to_world))),
-                          depth=(c.depth * s).astype(np.float32))
-    G = np.stack([np.eye(4), np.eye(4), np.linalg.inv(Q)])  # the copy placed back where it belongs
-    lc = stitch.LoopClosure(chunk=2, other=0, frames=(0, 6), transform=np.eye(4), inliers=10, rmse=1.0,
-                            other_frames=(0, 6))
-    out = stitch.measure_loop(lc, [c, chunks[1], moved], G, max_pairs=4)
-    assert out.pairs == 4 and np.all(out.sigma < 1e-4)
-    np.testing.assert_allclose(out.transform, np.linalg.inv(Q), atol=1e-4)
-    np.testing.assert_array_equal(out.measured, np.eye(4))
+        out = solve_chain(g, jax.numpy.asarray(P))
+    np.testing.assert_allclose(float(np.sum(out.h_prior) + np.sum(out.h_motion)), 6 * FRAMES, rtol=1e-6)

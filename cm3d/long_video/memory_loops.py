@@ -1,0 +1,171 @@
+"""Memory recall across chunks: loop closures from the pipeline's memory, the Sim(3) pose graph
+over the chunks, and the whole-trajectory refinement.
+
+Every chunk runs through the pipeline threading **one** memory bank, so a chunk that comes back to
+an earlier place recalls the earlier chunk's map. Each accepted recall of a map created two or more
+chunks earlier is a Sim(3) loop constraint (:func:`recall_loops`), re-expressed between the chunks'
+prior frames (:func:`loop_to_prior_frames`); the Sim(3) pose graph
+(:func:`cm3d.long_video.pose_graph.sim3_pose_graph`) places the chunks' priors, and the frame graph
+refines the whole trajectory.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import jax.numpy as jnp
+import numpy as np
+
+from cm3d.data.sequence import Sequence
+from cm3d.long_video.frame_graph import FrameGraphConfig, refine_frames, rotation_noise
+from cm3d.long_video.fuse import merge_chunks
+from cm3d.long_video.layout import StitchError, check_chunks, chunk_layout
+from cm3d.long_video.overlap import StitchConfig, align_boundaries, align_overlap
+from cm3d.long_video.pose_graph import LoopClosure, PoseGraphConfig, sim3_pose_graph
+from cm3d.long_video.stitch import StitchResult, centre_noise
+
+
+def recall_loops(results, min_gap: int = 2) -> list[LoopClosure]:
+    """Loop closures from the pipeline's per-chunk results (chunks run in order with one memory
+    bank, :func:`cm3d.pipeline.run`; ``results[k].windows``: window records): every accepted recall
+    of a map created by a chunk at least ``min_gap`` chunks earlier (consecutive chunks are tied by
+    their overlap already). The map keeps the frame of the chunk that created it (updates are moved
+    into it), so the recall's Sim(3) maps the recalling chunk's frame into the creator's."""
+    creator = {}
+    loops = []
+    for k, res in enumerate(results):
+        for w in res.windows:
+            made = creator.get(w.recalled_map)
+            if w.accepted and made is not None and k - made[0] >= min_gap:
+                loops.append(LoopClosure(chunk=k, other=made[0], frames=tuple(w.frames),
+                                         transform=np.asarray(w.transform, np.float64),
+                                         inliers=int(w.inlier_count), rmse=float(w.rmse), other_frames=made[1]))
+            if w.created_map and w.map_id >= 0:
+                creator.setdefault(w.map_id, (k, tuple(w.frames)))
+    return loops
+
+
+def window_frame_change(chunk: Sequence, refined, frames, config: StitchConfig = StitchConfig()):
+    """The Sim(3) (4, 4) from a window's refined frame to its chunk's prior frame: the window's
+    frames ``[f0, f1]`` (inclusive) are lifted on a pixel grid with the prior poses and with the
+    ``refined`` poses (S, 4, 4) and fitted like an overlap (:func:`align_overlap`: the same pixels
+    of the same frames, no matching). Near the identity: what is left is the window's refinement."""
+    sl = slice(int(frames[0]), int(frames[1]) + 1)
+    d, K = jnp.asarray(chunk.depth[sl]), jnp.asarray(chunk.intrinsic[sl])
+    fit = align_overlap((d, K, jnp.asarray(chunk.cam_to_world[sl])), (d, K, jnp.asarray(np.asarray(refined)[sl])),
+                        cfg=config)
+    return np.asarray(fit.transform, np.float64)
+
+
+def loop_to_prior_frames(lc: LoopClosure, chunks, results, config: StitchConfig = StitchConfig()) -> LoopClosure:
+    """A loop closure's transform re-expressed between the two chunks' *prior* frames.
+
+    The memory verifies a recall between clouds built from the pipeline's *refined* window poses,
+    while the pose graph places the chunks' priors: ``T' = D_other T D_chunk^{-1}``, ``D`` the
+    window's refined -> prior frame change (:func:`window_frame_change`)."""
+    if lc.other_frames is None:
+        raise StitchError(f"loops: chunk {lc.chunk} -> {lc.other} does not name the creating window's frames")
+    Dc = window_frame_change(chunks[lc.chunk], results[lc.chunk].poses, lc.frames, config)
+    Do = window_frame_change(chunks[lc.other], results[lc.other].poses, lc.other_frames, config)
+    T = Do @ np.asarray(lc.transform, np.float64) @ np.linalg.inv(Dc)
+    return dataclasses.replace(lc, transform=T, measured=np.asarray(lc.transform, np.float64))
+
+
+def memory_config_for_chunks(height: int, width: int, chunk_lengths, **changes):
+    """The pipeline config for chunks of a long video: :func:`cm3d.pipeline.config_for` (``changes``
+    passed on), with windows of 20 frames (the paper's) unless that leaves the longest chunk fewer
+    than two (then at most half of it, at least config_for's), and room in a new bank for one map
+    per window of every chunk. chunk_lengths: frames per chunk."""
+    from cm3d import pipeline
+
+    lengths = [int(n) for n in chunk_lengths]
+    if not lengths or min(lengths) < 2:
+        raise StitchError(f"chunk_lengths: every chunk needs at least 2 frames, got {lengths}")
+    cfg = pipeline.config_for(height, width, **changes)
+    if "keyframe_interval" not in changes:
+        cfg = dataclasses.replace(cfg, keyframe_interval=max(cfg.keyframe_interval, min(20, max(lengths) // 2)))
+    ki = cfg.keyframe_interval
+    windows = sum(-(-(n - 1) // ki) for n in lengths)  # a window ends every ki frames and at the last
+    mem = dataclasses.replace(cfg.memory, max_maps=max(cfg.memory.max_maps, windows))
+    return dataclasses.replace(cfg, memory=mem)
+
+
+def stitch_with_memory(chunks, overlap: int | None = None, config: StitchConfig = StitchConfig(),
+                       pipeline_config=None, bank=None, graph: PoseGraphConfig = PoseGraphConfig(),
+                       progress=None, refine: bool = True, frame_config: FrameGraphConfig = FrameGraphConfig(),
+                       results=None) -> StitchResult:
+    """Stitch chunks with memory recall across them, then refine the whole trajectory.
+
+    1. every chunk runs through the pipeline (:func:`cm3d.pipeline.run`) threading one memory bank;
+    2. consecutive chunks are aligned by Sim(3) on their shared frames, from the chunks' priors
+       (as :func:`cm3d.long_video.stitch_chunks`);
+    3. the loop closures (:func:`recall_loops`, :func:`loop_to_prior_frames`) and the overlaps
+       enter the Sim(3) pose graph over the chunk transforms (a loop inconsistent with the chain is
+       left out);
+    4. the chunks are placed by the pose graph's transforms and fused (the stitched priors);
+    5. ``refine``: the whole trajectory is refined (:func:`cm3d.long_video.refine_frames`, static
+       pixels from the pipeline's motion masks), kept when it passes its self-check.
+
+    pipeline_config: the pipeline's config (None: :func:`memory_config_for_chunks`); bank: a memory
+    bank to start from; progress: optional ``(stage, done, total)`` callable; results: the
+    pipeline's per-chunk results of an earlier call (skips step 1; ``bank`` is returned as given).
+    Returns :class:`StitchResult` (method ``"cm3d-memory"``) with ``loops``, ``bank`` and
+    ``results``; ``poses_aligned``: the chained overlap alignment; ``refinement``: the pose graph's
+    facts (per loop ``loop_discrepancy``, ``loop_kept``), ``poses_stitched`` (the pose graph's
+    placement of the priors) and ``frames`` (the refinement's facts).
+    """
+    from cm3d import pipeline
+
+    chunks = check_chunks(chunks)
+    ranges, overlaps, ts = chunk_layout(chunks, overlap)
+    H, W = chunks[0].image_size
+    cfg = pipeline_config or memory_config_for_chunks(H, W, [c.num_frames for c in chunks])
+    t0 = time.perf_counter()
+    if results is None:
+        bank, results = pipeline.run(list(chunks), cfg, bank, progress=progress)
+    t_pipe = time.perf_counter() - t0
+    A, G0, bounds = align_boundaries(chunks, ranges, overlaps, config)
+    loops = [loop_to_prior_frames(lc, chunks, results, config) for lc in recall_loops(results)]
+    G, facts = sim3_pose_graph(G0, A, loops, graph)
+    seq, frame_chunk = merge_chunks(chunks, ranges, overlaps, ts, G, "cm3d-memory")
+    chained, _ = merge_chunks(chunks, ranges, overlaps, ts, G0, "cm3d-memory")
+    stitched, frame_facts, kept = seq.cam_to_world, {"kept": False}, False
+    if refine:
+        static = np.ones(seq.depth.shape, bool)
+        for k, ((a, b), r) in enumerate(zip(ranges, results)):
+            mine = np.flatnonzero(frame_chunk[a:b] == k)
+            static[a + mine] = ~np.asarray(r.masks, bool)[mine]
+        poses, frame_facts = refine_frames(seq, static, frame_config, centre_noise(bounds),
+                                           rotation_noise(chunks, overlaps, G))
+        kept = frame_facts["kept"]
+        seq = seq.replace(cam_to_world=poses)
+    facts = {**facts, "chained_transforms": G0, "pipeline_s": t_pipe, "windows": sum(len(r.windows) for r in results),
+             "recalls": sum(int(w.accepted) for r in results for w in r.windows), "poses_stitched": stitched,
+             "frames": frame_facts}
+    return StitchResult(sequence=seq, poses_aligned=chained.cam_to_world, poses_refined=seq.cam_to_world,
+                        chunk_transforms=G, ranges=ranges, frame_chunk=frame_chunk, boundaries=bounds,
+                        refined=kept, refinement=facts, method="cm3d-memory",
+                        loops=tuple(loops), bank=bank, results=tuple(results))
+
+
+def memory_sequence_result(res: StitchResult, chunks):
+    """A :class:`cm3d.pipeline.SequenceResult` of the whole video from :func:`stitch_with_memory`,
+    for the output writers (``cm3d run chunk0.npz chunk1.npz ... --memory BANK``): the refined
+    trajectory, the pose graph's placement of the priors as the prior, each frame's mask from the
+    chunk its image comes from, and every chunk's window records with global frame numbers and
+    their ``chunk``."""
+    from cm3d import pipeline
+
+    if res.method != "cm3d-memory":
+        raise StitchError(f"res: expected a stitch_with_memory result, got method {res.method!r}")
+    prior = res.refinement.get("poses_stitched", res.poses_aligned)
+    masks = np.zeros(res.sequence.depth.shape, bool)
+    windows = []
+    for k, ((a, b), r) in enumerate(zip(res.ranges, res.results)):
+        mine = np.flatnonzero(res.frame_chunk[a:b] == k)
+        masks[a + mine] = r.masks[mine]
+        for w in r.windows:
+            windows.append(dataclasses.replace(w, chunk=k, frames=(w.frames[0] + a, w.frames[1] + a)))
+    return pipeline.SequenceResult(poses=np.asarray(res.sequence.cam_to_world), prior=np.asarray(prior),
+                                   masks=masks, windows=windows, sequence=res.sequence)
