@@ -244,14 +244,14 @@ def main() -> None:
         for a, b in pairs:
             ov = overlap(clouds[a], clouds[b])
             figures[f"overlap_{a}_{b}"] = ov
-            maps_a = {w["map_id"] for w in results[a].windows if w["created_map"]}
+            maps_a = {w.map_id for w in results[a].windows if w.created_map}
             _, res_b, _ = run_segment(seqs[b], cfg, banks[a])
-            acc = [w for w in res_b.windows if w["accepted"] and w["recalled_map"] in maps_a]
-            best = max(res_b.windows, key=lambda w: max(w["keypoint_inliers"] or [0]))
-            top = "A" if best["candidates"] and best["candidates"][0] in maps_a else "-"
+            acc = [w for w in res_b.windows if w.accepted and w.recalled_map in maps_a]
+            best = max(res_b.windows, key=lambda w: max(w.keypoint_inliers or [0]))
+            top = "A" if best.candidates and best.candidates[0] in maps_a else "-"
             err = None
             if acc:
-                err = reloc_error(np.asarray(acc[0]["transform"]), true_sim3(seqs[a], seqs[b]),
+                err = reloc_error(np.asarray(acc[0].transform), true_sim3(seqs[a], seqs[b]),
                                   seqs[a].meta["prior_scale"])
             if kind == "revisit":
                 recalled += bool(acc)
