@@ -193,7 +193,7 @@ def _run(args) -> int:
         print(f"ATE prior {p['ate']:.5f} -> refined {r['ate']:.5f} ({-m['ate_reduction_pct']:+.1f} %), "
               f"RPE trans {p['rpe_trans']:.5f} -> {r['rpe_trans']:.5f}, "
               f"mask IoU {m.get('mask', {}).get('iou', float('nan')):.3f}")
-    saved = f"; memory bank {bank_path} ({int(bank.map_valid.sum())} maps)" if bank_path and cfg.use_memory else ""
+    saved = f"; memory bank {bank_path} ({int(bank.num_maps)} maps)" if bank_path and cfg.use_memory else ""
     print(f"wrote {out}/ (trajectory.txt, trajectory_prior.txt, masks/, static_map.ply, recall.json"
           f"{', metrics.json' if m else ''}{', stitch.json' if chunks is not None else ''}"
           f"{'' if args.no_pictures else ', pictures'}){saved}")
@@ -221,14 +221,15 @@ def _memory(args) -> int:
         print(f"{args.bank}: {int(valid.sum())} of {cfg.max_maps} maps "
               f"(capacity {cfg.max_points} points, {cfg.max_keyframes} keyframes each)")
         for m in np.flatnonzero(valid):
-            print(f"  map {m:3d}: {int(np.asarray(bank.point_valid[m]).sum()):6d} points, "
+            print(f"  map {m:3d}: {int(np.asarray(memory.map_cloud(bank, m).valid).sum()):6d} points, "
                   f"{int(np.asarray(bank.kf_valid[m]).sum()):3d} keyframes, {int(bank.visits[m])} visits")
         return 0
     if args.map_id is None or not (0 <= args.map_id < cfg.max_maps) or not valid[args.map_id]:
         raise ValueError(f"map id: {args.map_id} is not a stored map (valid: {np.flatnonzero(valid).tolist()})")
     m = args.map_id
     if args.action == "show":
-        pts = np.asarray(bank.points[m])[np.asarray(bank.point_valid[m])]
+        cloud = memory.map_cloud(bank, m)
+        pts = np.asarray(cloud.points)[np.asarray(cloud.valid)]
         lo, hi = (pts.min(0), pts.max(0)) if len(pts) else (np.zeros(3), np.zeros(3))
         print(json.dumps({"map_id": int(m), "points": int(len(pts)), "keyframes": int(np.asarray(bank.kf_valid[m]).sum()),
                           "keypoints": int(np.asarray(bank.kp_valid[m]).sum()),

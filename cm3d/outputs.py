@@ -196,11 +196,8 @@ def write_results(out_dir, result, bank=None, overlay_every: int = 5, pictures: 
 
         plots.save_mask_overlays(out / "overlays", seq.images, result.masks, every=overlay_every)
         trajs = {"prior": result.prior, "refined": result.poses}
-        if seq.gt is not None:
-            import jax
-
-            with jax.enable_x64(True):
-                trajs = {k: np.asarray(em.align_trajectory(v, seq.gt.cam_to_world)) for k, v in trajs.items()}
+        if seq.gt is not None:  # aligned in float32: a picture
+            trajs = {k: np.asarray(em.align_trajectory(v, seq.gt.cam_to_world)) for k, v in trajs.items()}
             trajs["ground truth"] = seq.gt.cam_to_world
         plots.plot_trajectories(out / "trajectory.png", trajs, title="prior vs refined" +
                                 (" vs ground truth (Sim3-aligned)" if seq.gt is not None else ""))

@@ -21,7 +21,7 @@ revisit (visit 2), compared with the ground truth by ATE / RPE trans (m, Sim(3)-
   recall and verification with the refined window merged with what the sequence stored so far, the
   factor graph again with the recalled map's landmarks held on its surface, kept only when it agrees
   with the window's own observations, update; a revisit that recalls nothing keeps its memory-free
-  poses, ``PipelineConfig.own_map_landmarks`` being off by default).
+  poses).
 
 ``recalled`` is the fraction of revisits in which a window recalled (verified) a map stored by
 visit 1. JSON keys (means over scenes): ``ate_<m>``, ``rpe_trans_<m>``, ``rpe_rot_<m>`` for
@@ -101,8 +101,8 @@ def revisit_runs(scene: int, frames: int, wcfg: synthetic.WorldConfig, no_memory
     """Two visits of ``scene`` through the pipeline with one memory bank (and, with ``no_memory``,
     the revisit again with the memory off; ``empty_bank_baseline``: with the memory program on an
     empty bank instead, which saves a compilation (the ``--quick`` smoke run, whose figures mean
-    nothing): the revisit then recalls nothing, and with ``PipelineConfig.own_map_landmarks`` off (the
-    default) its poses are those of the memory-off program; the bank still stores its windows).
+    nothing): the revisit then recalls nothing, and its poses are those of the memory-off program;
+    the bank still stores its windows).
 
     Returns dict(seqs, cfg, res_mem [visit 1, visit 2] :class:`cm3d.pipeline.SequenceResult`,
     res_nomem (visit 2, memory off, or None), bank0 (after visit 1), bank1 (after visit 2),

@@ -1,0 +1,211 @@
+"""Recall / verify / update inside the window: the refined window is identified against the bank's
+other maps, the recalled surface holds the landmarks near it in a second LM solve (kept only when a
+χ² test on the window's own observations accepts it), then the bank is updated."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from cm3d import memory, trajectory
+from cm3d.ops import robust, sim3
+from cm3d.pipeline.config import PipelineConfig
+from cm3d.pipeline.state import Landmarks, MemoryCursor, Window
+from cm3d.pipeline.window import chi2_threshold, rescale_window, restore_depth_scale, structure_only_cost
+from cm3d.solvers import factors, lm
+
+
+@struct.dataclass
+class RecallReport:
+    """One window's memory decision: the recall's candidates (top_k,) (-1 none) with votes, scores
+    and keypoint inliers; the verification (accepted, recalled map, inliers, RMSE, fitness, scale,
+    its Sim(3) ``transform`` query -> map); the map written (-1 bank full), created; ``placement``:
+    the Sim(3) sequence -> map the memory priors and the merge used."""
+
+    candidates: Any
+    votes: Any
+    scores: Any
+    keypoint_inliers: Any
+    accepted: Any
+    recalled: Any
+    inlier_count: Any
+    inlier_rmse: Any
+    fitness: Any
+    scale: Any
+    transform: Any
+    map_id: Any
+    created: Any
+    placement: Any = None
+
+    @classmethod
+    def empty(cls, top_k: int) -> "RecallReport":
+        zi = jnp.zeros(top_k, jnp.int32)
+        return cls(candidates=zi - 1, votes=jnp.zeros(top_k), scores=jnp.zeros(top_k), keypoint_inliers=zi,
+                   accepted=jnp.zeros((), bool), recalled=-jnp.ones((), jnp.int32),
+                   inlier_count=jnp.zeros((), jnp.int32), inlier_rmse=jnp.zeros(()), fitness=jnp.zeros(()),
+                   scale=jnp.ones(()), transform=jnp.eye(4, dtype=jnp.float32),
+                   map_id=-jnp.ones((), jnp.int32), created=jnp.zeros((), bool),
+                   placement=jnp.eye(4, dtype=jnp.float32))
+
+
+@struct.dataclass
+class MemoryStep:
+    """What the memory did to one window: final poses (W, 4, 4), report, landmarks held on the
+    remembered surface, whether the memory solution was used, and its χ² test (stat, threshold)."""
+
+    poses: Any
+    report: RecallReport
+    landmarks: Any
+    used: Any
+    stat: Any
+    threshold: Any
+
+    @classmethod
+    def off(cls, poses, top_k: int) -> "MemoryStep":
+        """Memory switched off: the memory-free poses, an empty report."""
+        z = jnp.zeros((), jnp.float32)
+        return cls(poses=poses, report=RecallReport.empty(top_k), landmarks=jnp.zeros((), jnp.int32),
+                   used=jnp.zeros((), bool), stat=z, threshold=z)
+
+
+def window_entry(win: Window, mem_cfg: memory.MemoryConfig, cfg: PipelineConfig,
+                 min_support: float = 0.0) -> memory.MapEntry:
+    """The window as a memory entry (:func:`cm3d.memory.build_entry`): static cloud, keyframe
+    descriptors and 3D keypoints posed by ``win.poses``; ``min_support``: see ``map_min_support``."""
+    cloud_cfg = dataclasses.replace(mem_cfg, pixel_stride=max(1, mem_cfg.pixel_stride // cfg.stride))
+    static = win.static & win.valid[:, None, None]
+    cloud = memory.sequence_cloud(win.depth, win.conf, win.intrinsic, win.poses, win.image, static, cloud_cfg)
+    idx, kv = memory.select_keyframes(win.desc, win.valid, cfg.keyframe_threshold, mem_cfg.max_keyframes)
+    fvalid = win.feat_valid & win.valid[:, None]
+    kp = memory.lift_keypoints(win.feat_uv, win.feat_desc, fvalid, win.depth, win.intrinsic, win.poses,
+                               mem_cfg.max_keypoints)
+    return memory.build_entry(cloud, win.desc[idx], kv, mem_cfg, keypoints=kp, min_support=min_support)
+
+
+def recall_report(ident: memory.Identification, map_id, transform, created, placement) -> RecallReport:
+    """The :class:`RecallReport` of an identification and the update that followed it."""
+    rc, ver = ident.recall, ident.verification
+    cand = rc.candidates
+    safe = jnp.maximum(cand, 0)
+    return RecallReport(
+        candidates=cand.astype(jnp.int32), votes=jnp.where(cand >= 0, rc.votes[safe], 0.0).astype(jnp.float32),
+        scores=jnp.where(cand >= 0, rc.scores[safe], 0.0).astype(jnp.float32),
+        keypoint_inliers=ident.candidate_inliers.astype(jnp.int32),
+        accepted=ident.map_id >= 0, recalled=ident.map_id.astype(jnp.int32),
+        inlier_count=ver.inlier_count.astype(jnp.int32), inlier_rmse=ver.inlier_rmse.astype(jnp.float32),
+        fitness=ver.fitness.astype(jnp.float32), scale=ver.scale.astype(jnp.float32),
+        transform=jnp.asarray(transform, jnp.float32), map_id=jnp.asarray(map_id, jnp.int32),
+        created=jnp.asarray(created, bool), placement=jnp.asarray(placement, jnp.float32))
+
+
+def memory_surface(bank: memory.MemoryBank, map_id, transform, d_scene) -> trajectory.MemorySurface:
+    """Map ``map_id`` moved into the sequence's frame (inverse of the Sim(3) ``transform``
+    sequence -> map) as a :class:`cm3d.trajectory.MemorySurface` (empty when ``map_id < 0``)."""
+    cloud = memory.map_cloud(bank, map_id)
+    T = transform.astype(jnp.float32)
+    scale = jnp.maximum(sim3.scale(T), 1e-12)
+    R = T[:3, :3] / scale
+    return trajectory.MemorySurface(points=sim3.apply(sim3.inverse(T), cloud.points),
+                                    normals=cloud.normals @ R,  # map -> sequence: R^T n, as rows
+                                    valid=cloud.valid, voxel=cloud.voxel_size / scale,
+                                    d_scene=jnp.asarray(d_scene, jnp.float32))
+
+
+def sequence_query(bank: memory.MemoryBank, written, entry: memory.MapEntry, mem_cfg: memory.MemoryConfig):
+    """The identification's query: the window's entry merged with the map its sequence stored so far
+    (``written``, in the sequence's frame: the sequence up to this window); the entry alone when
+    ``written < 0``."""
+    m = jnp.maximum(written, 0)
+
+    def merged(entry):
+        b = memory.update_map(bank, m, entry, jnp.eye(4, dtype=jnp.float32), mem_cfg)
+        kp = memory.Keypoints(b.kp_points[m], b.kp_desc[m], b.kp_valid[m])
+        return entry.replace(points=b.points[m], normals=b.normals[m], conf=b.conf[m], colors=b.colors[m],
+                             point_valid=b.point_valid[m], kf_desc=b.kf_desc[m], kf_valid=b.kf_valid[m],
+                             cloud_desc=b.cloud_desc[m], voxel_size=b.voxel_size[m],
+                             keypoints=kp)  # both at the bank's keypoint capacity (bank_config)
+
+    return jax.lax.cond(written >= 0, merged, lambda e: e, entry)
+
+
+def memory_refinement(win: Window, lm_: Landmarks, ref0: trajectory.Refinement, obs: trajectory.Observations,
+                      first, surface: trajectory.MemorySurface, cfg: PipelineConfig, realign=False):
+    """The window's factor graph again with the remembered surface, from the memory-free optimum
+    ``ref0`` at the prior depth's scale: landmarks within ``τ = max(τ_min, d_scene α)`` of its tangent
+    planes get point-to-plane priors of std ``max(plane_sigma_ratio d_scene, robust spread,
+    memory_sigma_voxels · voxel)``, projection covariance scaled by ``α_mem``
+    (:func:`cm3d.trajectory.memory_point_prior`; ``realign``: placement first re-fitted,
+    :func:`cm3d.trajectory.align_to_surface`); one LM solve. Consistency test:
+    ``2 (C_own(poses_mem) − C_own(poses_free)) <= χ²_q(6 (n − 1))`` (``C_own`` without memory terms,
+    landmarks re-estimated at held poses) on at least ``min_memory_landmarks`` landmarks.
+    Returns (poses (W, 4, 4), accept, alignment (4, 4), memory landmarks (L,), stat, threshold)."""
+    rc = cfg.refine
+    L = lm_.points.shape[0]
+    g0 = ref0.graph
+    x0 = ref0.result.params
+    x0 = factors.Variables(*rescale_window(x0.poses, x0.points, win.poses, lm_.points, lm_.seed, first))
+    f = g0.projection
+    pvalid = jnp.zeros(L, bool).at[f.point_idx].max(f.weight > 0)
+    eye = jnp.eye(4, dtype=x0.points.dtype)
+    A = jax.lax.cond(realign, lambda: trajectory.align_to_surface(x0.points, pvalid, surface, cfg.assoc), lambda: eye)
+    placed = trajectory.move_surface(surface, A)
+    _, near, plane = trajectory.associate_surface(x0.points, pvalid, placed, cfg.assoc)
+    spread = robust.robust_sigma(plane, near)
+    sigma = jnp.maximum(cfg.assoc.plane_sigma_ratio * surface.d_scene,
+                        jnp.where(jnp.sum(near) >= cfg.min_memory_landmarks, spread, 0.0))
+    sigma = jnp.maximum(sigma, cfg.memory_sigma_voxels * placed.voxel)
+    g1, matched = trajectory.memory_point_prior(g0, x0.points, pvalid, placed, cfg.assoc, sigma=sigma)
+    res = lm.solve(g1, x0, rc.solver)
+    poses1 = factors.orthonormalize_poses(res.params.poses)
+    cost_own, _ = structure_only_cost(g0, poses1, res.params.points, min_observations=rc.solver.min_observations)
+    stat = (2.0 * (cost_own - ref0.result.cost)).astype(win.poses.dtype)
+    thr = chi2_threshold(obs, ref0.inlier, win.poses.shape[0], rc.gate_quantile, win.poses.dtype)
+    fixed = restore_depth_scale(poses1, win.poses, res.params.points, lm_.points, lm_.seed, first)
+    fixed = jnp.where(win.valid[:, None, None], fixed, win.poses)
+    accept = (jnp.sum(matched) >= cfg.min_memory_landmarks) & (stat <= thr) & jnp.all(jnp.isfinite(fixed))
+    return fixed, accept, A, matched, stat, thr
+
+
+def recall_verify_update(bank: memory.MemoryBank, cursor: MemoryCursor, key, win: Window, lm_: Landmarks,
+                         ref: trajectory.Refinement, poses, obs: trajectory.Observations,
+                         mem_cfg: memory.MemoryConfig, cfg: PipelineConfig):
+    """The memory's part of a window after its memory-free graph (``ref``, ``poses``): **identify**
+    the refined window merged with the sequence's stored map (:func:`sequence_query`) against the bank
+    without that map; **factor graph with memory** (:func:`memory_refinement`) on the map recalled
+    earlier or just verified, used only when the memory-free refinement passed its gate and the
+    memory its test; **update** the bank with the final window (that map, else the sequence's own,
+    else a new one). Returns (bank, cursor, :class:`MemoryStep`)."""
+    entry0 = sequence_query(bank, cursor.written, window_entry(win.replace(poses=poses), mem_cfg, cfg), mem_cfg)
+    ident = memory.identify(memory.without_map(bank, cursor.written), entry0, mem_cfg, key)
+    hit = ident.map_id >= 0
+    new_map = hit & (ident.map_id != cursor.recalled)
+    use_map = jnp.where(new_map, ident.map_id, cursor.recalled).astype(jnp.int32)
+    use_T = jnp.where(new_map, ident.verification.transform, cursor.transform).astype(jnp.float32)
+    d_scene = trajectory.scene_scale(win.depth, win.static & win.valid[:, None, None])
+    surface = memory_surface(bank, use_map, use_T, d_scene)
+    first = obs.valid.reshape(lm_.obs_valid.shape)[:, 0]  # tracks that passed the prior check
+    pm, ok, A, matched, stat, thr = memory_refinement(win, lm_, ref, obs, first, surface, cfg, new_map)
+    used = (use_map >= 0) & ref.refined & ok
+    poses = jnp.where(used, pm.astype(jnp.float32), poses)
+    use_T = (use_T @ A.astype(jnp.float32)).astype(jnp.float32)
+    entry = window_entry(win.replace(poses=poses), mem_cfg, cfg, cfg.map_min_support)
+    # else the sequence's own map, whose frame is the sequence's (identity: exact, no ICP noise)
+    target = jnp.where(use_map >= 0, use_map, cursor.written).astype(jnp.int32)
+    target_T = jnp.where(use_map >= 0, use_T, jnp.eye(4)).astype(jnp.float32)
+    known = target >= 0
+
+    def merge(b):
+        return memory.update_map(b, jnp.maximum(target, 0), entry, target_T, mem_cfg), target
+
+    bank, map_id = jax.lax.cond(known, merge, lambda b: memory.insert_map(b, entry), bank)
+    created = ~known & (map_id >= 0)
+    cursor = MemoryCursor(recalled=use_map, transform=use_T,
+                          written=jnp.where(created, map_id, cursor.written).astype(jnp.int32))
+    report = recall_report(ident, map_id, jnp.where(hit, ident.verification.transform, jnp.eye(4)), created,
+                           target_T)
+    return bank, cursor, MemoryStep(poses=poses, report=report, landmarks=jnp.sum(matched).astype(jnp.int32),
+                                    used=used, stat=stat.astype(jnp.float32), threshold=thr.astype(jnp.float32))

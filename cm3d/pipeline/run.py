@@ -1,0 +1,163 @@
+"""The host side after the compiled scan: one :class:`WindowRecord` per window and a
+:class:`SequenceResult` per sequence (:func:`collect`), and the one-call API :func:`run`."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from cm3d import memory
+from cm3d.pipeline.config import PipelineConfig
+from cm3d.pipeline.prepare import prepare
+from cm3d.pipeline.state import init_state
+from cm3d.pipeline.step import StepOutputs, run_sequence
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class WindowRecord:
+    """One window's facts on the host (``recall.json`` lists them): frames (first, last); the recall's
+    candidates (ids >= 0) and evidence; the verification (accepted, recalled_map, ICP facts,
+    ``transform`` (4, 4) window -> map); ``placement`` (4, 4): the Sim(3) the memory priors and the
+    merge used; the map written; the gate, graph counts and the memory's χ² test; chunk: the chunk of
+    a long video (None for one sequence)."""
+
+    frames: tuple
+    memory: bool
+    candidates: tuple
+    votes: tuple
+    scores: tuple
+    keypoint_inliers: tuple
+    accepted: bool
+    recalled_map: int
+    inlier_count: int
+    rmse: float
+    fitness: float
+    scale: float
+    transform: np.ndarray
+    placement: np.ndarray
+    map_id: int
+    created_map: bool
+    refined: bool
+    gate_stat: float
+    gate_threshold: float
+    landmarks: int
+    memory_landmarks: int
+    memory_used: bool
+    memory_stat: float
+    memory_threshold: float
+    inconsistent_tracks: int
+    observations: int
+    inliers: int
+    lm_iterations: int
+    chunk: int | None = None
+
+    @classmethod
+    def from_result(cls, w, memory_on: bool) -> "WindowRecord":
+        """The record of one window's :class:`cm3d.pipeline.step.WindowResult` (numpy, one window)."""
+        ok = np.asarray(w.valid, bool)
+        r = w.recall
+        cand = [int(c) for c in r.candidates]
+        keep = lambda vals, kind: tuple(kind(v) for c, v in zip(cand, vals) if c >= 0)  # noqa: E731
+        return cls(
+            frames=(int(w.index[ok].min()), int(w.index[ok].max())), memory=memory_on,
+            candidates=tuple(c for c in cand if c >= 0), votes=keep(r.votes, float), scores=keep(r.scores, float),
+            keypoint_inliers=keep(r.keypoint_inliers, int), accepted=bool(r.accepted), recalled_map=int(r.recalled),
+            inlier_count=int(r.inlier_count), rmse=float(r.inlier_rmse), fitness=float(r.fitness),
+            scale=float(r.scale), transform=np.asarray(r.transform, np.float64),
+            placement=np.asarray(r.placement, np.float64), map_id=int(r.map_id), created_map=bool(r.created),
+            refined=bool(w.refined), gate_stat=float(w.gate_stat), gate_threshold=float(w.gate_threshold),
+            landmarks=int(w.landmarks), memory_landmarks=int(w.memory_landmarks), memory_used=bool(w.memory_used),
+            memory_stat=float(w.memory_stat), memory_threshold=float(w.memory_threshold),
+            inconsistent_tracks=int(w.inconsistent), observations=int(w.observations), inliers=int(w.inliers),
+            lm_iterations=int(w.iterations))
+
+    def to_json(self) -> dict:
+        """A JSON-ready dict (lists, Python numbers; transforms rounded to 6 decimals); ``chunk`` only
+        when set."""
+        out = {}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if f.name == "chunk" and v is None:
+                continue
+            if isinstance(v, np.ndarray):
+                v = v.round(6).tolist()
+            elif isinstance(v, tuple):
+                v = list(v)
+            out[f.name] = v
+        return out
+
+
+def recalled_earlier_map(windows) -> bool:
+    """Whether a window accepted a map that an earlier sequence stored (not one this sequence created)."""
+    created = {w.map_id for w in windows if w.created_map}
+    return any(w.accepted and w.recalled_map >= 0 and w.recalled_map not in created for w in windows)
+
+
+@dataclasses.dataclass
+class SequenceResult:
+    """What the pipeline found in one sequence (numpy, input resolution).
+
+    poses: (S, 4, 4) refined cam_to_world; prior: (S, 4, 4) the input prior; masks: (S, H, W) bool
+    dynamic masks; windows: one :class:`WindowRecord` per window;
+    sequence: the input :class:`cm3d.data.Sequence`."""
+
+    poses: np.ndarray
+    prior: np.ndarray
+    masks: np.ndarray
+    windows: list
+    sequence: Any
+
+
+def collect(outputs: StepOutputs, sequence, cfg: PipelineConfig = PipelineConfig()) -> SequenceResult:
+    """Per-frame results from the stacked step outputs (host): the refined pose of every frame
+    (from the window that refined it), full-resolution masks and one :class:`WindowRecord` per window."""
+    out = jax.tree.map(np.asarray, outputs)
+    S, H, W = sequence.depth.shape
+    poses = np.array(out.init_pose[:S], np.float64)
+    windows = []
+    for t in np.flatnonzero(out.window_end):
+        w = jax.tree.map(lambda a: a[t], out.window)
+        ok = w.valid.astype(bool)
+        poses[w.index[ok]] = w.poses[ok]
+        windows.append(WindowRecord.from_result(w, bool(cfg.use_memory)))
+    s = cfg.stride
+    masks = np.repeat(np.repeat(out.mask[:S].astype(bool), s, axis=1), s, axis=2)[:, :H, :W]
+    return SequenceResult(poses=poses, prior=np.asarray(sequence.cam_to_world, np.float64), masks=masks,
+                          windows=windows, sequence=sequence)
+
+
+def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBank | None = None,
+        progress=None) -> tuple[memory.MemoryBank, list[SequenceResult]]:
+    """The whole pipeline on one or several visits (:class:`cm3d.data.Sequence` or paths any
+    loader reads), threading one state: the memory bank persists across visits.
+
+    ``bank``: a memory bank to start from (e.g. :func:`cm3d.memory.load`); ``progress``: optional
+    callable ``(stage, done, total)``. Returns (the updated bank, one :class:`SequenceResult` per visit).
+    """
+    from cm3d.data.loaders import load_input
+
+    if not isinstance(sequences, (list, tuple)):
+        sequences = [sequences]
+    state = None
+    results = []
+    for i, seq in enumerate(sequences):
+        if not hasattr(seq, "depth"):
+            seq = load_input(seq)
+        cb = None if progress is None else (lambda d, n, i=i: progress(f"visit {i}: flow", d, n))
+        inputs = jax.tree.map(jnp.asarray, prepare(seq, cfg, progress=cb))
+        if state is None:
+            state = init_state(inputs, cfg, bank)
+        elif state.window.depth.shape[1:] != inputs.frame.depth.shape[1:]:
+            state = init_state(inputs, cfg, state.bank)  # another image size: new buffers, same bank
+        if progress is not None:
+            progress(f"visit {i}: back end", 0, 1)
+        state, out = run_sequence(state, inputs, cfg)
+        jax.block_until_ready(out)
+        if progress is not None:
+            progress(f"visit {i}: back end", 1, 1)
+        results.append(collect(out, seq, cfg))
+    return (state.bank if state is not None else bank), results

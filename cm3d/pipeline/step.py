@@ -1,0 +1,183 @@
+"""One frame of CogniMap3D (paper, Fig. 2) as a pure function, and its ``lax.scan`` over a sequence:
+motion cues -> static landmarks -> (every ``keyframe_interval`` frames, in one ``lax.cond``) factor
+graph, recall / verify / update, factor graph with memory. Fixed shapes, static config."""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from cm3d import memory
+from cm3d.motion import motion_cues
+from cm3d.ops import descriptors, se3
+from cm3d.pipeline.config import PipelineConfig, bank_config
+from cm3d.pipeline.landmarks import advance_landmarks, seed_landmarks
+from cm3d.pipeline.memory_graph import MemoryStep, RecallReport, recall_verify_update
+from cm3d.pipeline.prepare import Inputs
+from cm3d.pipeline.state import Landmarks, MapState, MemoryCursor, Window, begin_sequence
+from cm3d.pipeline.window import factor_graph
+
+
+@struct.dataclass
+class WindowResult:
+    """One window's result: final poses (W, 4, 4), frame index (W,), valid (W,), the gate, graph
+    counts, the :class:`RecallReport`, dropped tracks, the memory solution's use and χ² test."""
+
+    poses: Any
+    index: Any
+    valid: Any
+    refined: Any
+    gate_stat: Any
+    gate_threshold: Any
+    observations: Any
+    inliers: Any
+    landmarks: Any
+    memory_landmarks: Any
+    iterations: Any
+    recall: RecallReport
+    inconsistent: Any
+    memory_used: Any
+    memory_stat: Any
+    memory_threshold: Any
+
+    @classmethod
+    def empty(cls, cfg: PipelineConfig, top_k: int) -> "WindowResult":
+        """The result of a frame that ends no window."""
+        W = cfg.window
+        z = jnp.zeros((), jnp.int32)
+        return cls(poses=jnp.broadcast_to(jnp.eye(4, dtype=jnp.float32), (W, 4, 4)), index=jnp.zeros(W, jnp.int32),
+                   valid=jnp.zeros(W, bool), refined=jnp.zeros((), bool), gate_stat=jnp.zeros(()),
+                   gate_threshold=jnp.zeros(()), observations=z, inliers=z, landmarks=z, memory_landmarks=z,
+                   iterations=z, recall=RecallReport.empty(top_k), inconsistent=z,
+                   memory_used=jnp.zeros((), bool), memory_stat=jnp.zeros(()), memory_threshold=jnp.zeros(()))
+
+
+@struct.dataclass
+class StepOutputs:
+    """Per-frame outputs: dynamic mask (h, w), initial pose (4, 4), window_end (a window was
+    refined at this frame: ``window`` holds it), valid (a real frame)."""
+
+    mask: Any
+    init_pose: Any
+    window_end: Any
+    window: WindowResult
+    valid: Any
+
+
+def static_mask(inputs_t: Inputs, cfg: PipelineConfig):
+    """Motion cues of frame t (pair with its partner): (dynamic mask (h, w), static (h, w))."""
+    cues = motion_cues(inputs_t.frame, inputs_t.partner, inputs_t.flow, inputs_t.matches, cfg.motion)
+    dyn = cues.robust_mask
+    return dyn, ~dyn & (inputs_t.frame.depth > 0)
+
+
+def _put(a, i, v):
+    return jax.lax.dynamic_update_index_in_dim(a, jnp.asarray(v, a.dtype), i, 0)
+
+
+def buffer_frame(win: Window, s, inputs_t: Inputs, init_pose, static, cfg: PipelineConfig) -> Window:
+    """Frame t in slot ``s``: prior, static mask, image descriptor and keypoint features on static pixels."""
+    f = inputs_t.frame
+    desc = descriptors.image_descriptor(f.image, static, factor=max(1, 4 // cfg.stride))
+    fuv = inputs_t.features.uv
+    h, w = static.shape
+    fr = jnp.clip(jnp.round(fuv[:, 1]).astype(jnp.int32), 0, h - 1)
+    fc = jnp.clip(jnp.round(fuv[:, 0]).astype(jnp.int32), 0, w - 1)
+    return win.replace(poses=_put(win.poses, s, init_pose), intrinsic=_put(win.intrinsic, s, f.intrinsic),
+                       depth=_put(win.depth, s, f.depth), conf=_put(win.conf, s, f.depth_conf),
+                       image=_put(win.image, s, f.image), static=_put(win.static, s, static),
+                       desc=_put(win.desc, s, desc),
+                       feat_uv=_put(win.feat_uv, s, fuv), feat_desc=_put(win.feat_desc, s, inputs_t.features.desc),
+                       feat_valid=_put(win.feat_valid, s, inputs_t.features.valid & static[fr, fc]),
+                       index=_put(win.index, s, inputs_t.index), valid=_put(win.valid, s, True))
+
+
+def window_end(bank: memory.MemoryBank, cursor: MemoryCursor, key, win: Window, lm_: Landmarks,
+               mem_cfg: memory.MemoryConfig, cfg: PipelineConfig):
+    """The window ending at this frame: factor graph (:func:`~cm3d.pipeline.window.factor_graph`),
+    then recall / verify / update around the graph with memory
+    (:func:`~cm3d.pipeline.memory_graph.recall_verify_update`). Returns (bank, cursor, WindowResult)."""
+    ref, poses, obs, n_bad = factor_graph(win, lm_, cfg)
+    poses = poses.astype(jnp.float32)
+    if cfg.use_memory:
+        bank, cursor, mem = recall_verify_update(bank, cursor, key, win, lm_, ref, poses, obs, mem_cfg, cfg)
+    else:
+        mem = MemoryStep.off(poses, mem_cfg.top_k)
+    res = WindowResult(poses=mem.poses, index=win.index, valid=win.valid, refined=ref.refined,
+                       gate_stat=ref.gate_stat.astype(jnp.float32),
+                       gate_threshold=ref.gate_threshold.astype(jnp.float32),
+                       observations=jnp.sum(obs.valid).astype(jnp.int32), inliers=jnp.sum(ref.inlier).astype(jnp.int32),
+                       landmarks=jnp.sum(obs.valid.reshape(lm_.obs_valid.shape)[:, 0]).astype(jnp.int32),
+                       memory_landmarks=mem.landmarks, iterations=ref.result.iterations.astype(jnp.int32),
+                       recall=mem.report, inconsistent=n_bad.astype(jnp.int32), memory_used=mem.used,
+                       memory_stat=mem.stat, memory_threshold=mem.threshold)
+    return bank, cursor, res
+
+
+def _close_window(st: MapState, key, s, frame_prior, mem_cfg, cfg: PipelineConfig):
+    """Window end: refine and remember it; this frame becomes slot 0 (the anchor) of a fresh window."""
+    bank, cursor, res = window_end(st.bank, st.cursor, key, st.window, st.landmarks, mem_cfg, cfg)
+    win = st.window
+    pose_t = res.poses[s]
+    nw = jax.tree.map(lambda a: _put(jnp.zeros_like(a), 0, a[s]), win)
+    nw = nw.replace(poses=jnp.broadcast_to(pose_t, win.poses.shape),  # free slots: harmless copies
+                    intrinsic=jnp.broadcast_to(win.intrinsic[s], win.intrinsic.shape))
+    lms = st.landmarks
+    fresh = lms.replace(alive=jnp.zeros_like(lms.alive), obs_valid=jnp.zeros_like(lms.obs_valid))
+    return st.replace(bank=bank, cursor=cursor, window=nw, landmarks=fresh, anchor_pose=pose_t,
+                      anchor_prior=frame_prior), res
+
+
+def step(state: MapState, inputs_t: Inputs, cfg: PipelineConfig = PipelineConfig()):
+    """One frame: motion cues -> static landmarks -> (every ``keyframe_interval`` frames) factor
+    graph, recall / verify / update, factor graph with memory. Pure; ``cfg`` static.
+    Returns (state, StepOutputs)."""
+    mem_cfg = bank_config(state.bank, cfg)
+    f = inputs_t.frame
+    first = state.frames == 0
+    st = state.replace(anchor_prior=jnp.where(first, f.cam_to_world, state.anchor_prior),
+                       anchor_pose=jnp.where(first, f.cam_to_world, state.anchor_pose))
+    init_pose = st.anchor_pose @ se3.inverse(st.anchor_prior) @ f.cam_to_world
+    s = state.slot
+
+    # 1. motion cues
+    dynamic, static = static_mask(inputs_t, cfg)
+
+    # 2. static landmarks: follow the live ones into this frame, buffer the frame
+    lms = jax.lax.cond(s > 0, lambda m: advance_landmarks(m, state.prev_flow, static, s, cfg), lambda m: m,
+                       state.landmarks)
+    st = st.replace(window=buffer_frame(st.window, s, inputs_t, init_pose, static, cfg), landmarks=lms)
+
+    # 3. every keyframe_interval frames: factor graph, recall / verify / update, factor graph with memory
+    end = (s == cfg.keyframe_interval) | inputs_t.last
+    key, sub = jax.random.split(state.key)
+    st, res = jax.lax.cond(end, functools.partial(_close_window, key=sub, s=s, frame_prior=f.cam_to_world,
+                                                  mem_cfg=mem_cfg, cfg=cfg),
+                           lambda m: (m, WindowResult.empty(cfg, mem_cfg.top_k)), st)
+    slot = jnp.where(end, 0, s)
+
+    # seed landmarks at the seeding slots (slot 0 of a new window is this frame again)
+    do_seed = (slot % cfg.track.keyframe_every == 0) & (slot < cfg.keyframe_interval)
+    lms = jax.lax.cond(do_seed, lambda m: seed_landmarks(m, slot, f.depth, f.depth_conf, static, f.intrinsic,
+                                                         st.window.poses[slot], cfg), lambda m: m, st.landmarks)
+    new = st.replace(key=key, landmarks=lms, prev_flow=jnp.asarray(inputs_t.flow, jnp.float32), slot=slot + 1,
+                     frames=state.frames + 1)
+    ok = inputs_t.valid
+    new = jax.tree.map(lambda a, b: jnp.where(ok, a, b), new, state)
+    out = StepOutputs(mask=dynamic & ok, init_pose=init_pose, window_end=end & ok, window=res, valid=ok)
+    return new, out
+
+
+def _run_sequence(state: MapState, inputs: Inputs, cfg: PipelineConfig):
+    state = begin_sequence(state)
+    return jax.lax.scan(functools.partial(step, cfg=cfg), state, inputs)
+
+
+#: ``run_sequence(state, inputs, cfg)``: the whole sequence in one compiled ``lax.scan`` of :func:`step`
+#: (the window, tracks and anchor are reset first; the memory bank carries over).
+run_sequence = jax.jit(_run_sequence, static_argnames="cfg")
+step_jit = jax.jit(step, static_argnames="cfg")
