@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from cm3d.ops import camera, robust, sim3
 from cm3d.solvers import factors, lm
 
 
@@ -122,7 +123,7 @@ def keyframes(num_frames: int, cfg: TrackConfig) -> jnp.ndarray:
 def scene_scale(depth, valid) -> jnp.ndarray:
     """``d_scene``: median prior depth over valid pixels (scalar)."""
     d = depth.ravel()
-    return factors.masked_median(d, valid.ravel() & (d > 0))
+    return robust.masked_median(d, valid.ravel() & (d > 0))
 
 
 def eligible_pixels(depth, conf, static, cfg: TrackConfig = TrackConfig()):
@@ -273,11 +274,7 @@ def lift_landmarks(tracks: Tracks, depth, intrinsics, poses):
     r = jnp.round(uv[:, 1]).astype(jnp.int32)
     c = jnp.round(uv[:, 0]).astype(jnp.int32)
     d = depth[f, r, c]
-    Kinv = jnp.linalg.inv(intrinsics[f])
-    ray = jnp.einsum("lij,lj->li", Kinv, jnp.concatenate([uv, jnp.ones_like(uv[:, :1])], -1))
-    pc = ray * d[:, None]
-    T = poses[f]
-    pw = jnp.einsum("lij,lj->li", T[:, :3, :3], pc) + T[:, :3, 3]
+    pw = camera.backproject(uv[:, None], d[:, None], intrinsics[f], poses[f])[:, 0]
     return pw, tracks.valid[:, 0] & (d > 0)
 
 
@@ -387,9 +384,7 @@ def align_to_surface(points, valid, mem: MemorySurface, cfg: AssociationConfig =
 def move_surface(mem: MemorySurface, T) -> MemorySurface:
     """The surface moved by the inverse of the similarity ``T = [s R, t]`` (landmarks ``T p`` on it
     <=> ``p`` on the moved one)."""
-    A, t = T[:3, :3], T[:3, 3]
-    s = jnp.cbrt(jnp.linalg.det(A))
-    R = A / s
+    s, R, t = sim3.scale(T), sim3.rotation(T), T[:3, 3]
     return mem.replace(points=(mem.points - t) @ R / s, normals=mem.normals @ R, voxel=mem.voxel / s)
 
 
@@ -431,13 +426,6 @@ class Refinement:
     graph: factors.FactorGraph | None = None
     memory: jnp.ndarray | None = None
     alignment: jnp.ndarray | None = None
-
-
-def chi2_quantile(q, dof):
-    """Wilson–Hilferty approximation of the χ² quantile (accurate to ~1% for dof >= 3)."""
-    z = jax.scipy.special.ndtri(q)
-    k = jnp.maximum(dof, 1.0)
-    return k * (1.0 - 2.0 / (9.0 * k) + z * jnp.sqrt(2.0 / (9.0 * k))) ** 3
 
 
 def refine_trajectory(prior_poses, intrinsics, points, obs: Observations,
@@ -507,7 +495,7 @@ def refine_trajectory(prior_poses, intrinsics, points, obs: Observations,
         w = graph.projection.weight > 0
         stat = 2.0 * (fixed.cost - res.cost)
         n_pose = jnp.sum(jnp.zeros(prior_poses.shape[0], jnp.int32).at[obs.pose_idx].max(w.astype(jnp.int32)))
-        thr = chi2_quantile(cfg.gate_quantile, 6.0 * jnp.maximum(n_pose - 1, 1).astype(dt))
+        thr = robust.chi2_quantile(cfg.gate_quantile, 6.0 * jnp.maximum(n_pose - 1, 1).astype(dt))
         use = stat > thr
         points_out = jnp.where(use, res.params.points, fixed.params.points)
     poses = jnp.where(use, refined_poses, prior_poses)

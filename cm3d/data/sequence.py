@@ -13,6 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from cm3d.ops import camera
+
 
 @dataclasses.dataclass(frozen=True)
 class GroundTruth:
@@ -33,11 +35,11 @@ class GroundTruth:
         """World points (S, H', W', 3) of every ``stride``-th pixel from ground-truth depth and poses."""
         S, H, W = self.depth.shape
         v, u = np.mgrid[0:H:stride, 0:W:stride].astype(np.float64)
-        uv1 = np.stack([u, v, np.ones_like(u)], -1)
-        rays = np.einsum("sij,hwj->shwi", np.linalg.inv(self.intrinsic), uv1)
-        pc = rays * self.depth[:, ::stride, ::stride, None]
-        R, t = self.cam_to_world[:, :3, :3], self.cam_to_world[:, :3, 3]
-        return np.einsum("sij,shwj->shwi", R, pc) + t[:, None, None, :]
+        d = self.depth[:, ::stride, ::stride]
+        h, w = d.shape[1:]
+        uv = np.stack([u, v], -1).reshape(-1, 2)
+        pts = camera.backproject(uv, d.reshape(S, -1), np.asarray(self.intrinsic), np.asarray(self.cam_to_world))
+        return pts.reshape(S, h, w, 3)
 
     def static_points(self, stride: int = 1) -> np.ndarray:
         """Static world points (N, 3): pixels with depth that are not on moving objects."""

@@ -12,6 +12,8 @@ import dataclasses
 import numpy as np
 from flax import struct
 
+from cm3d.ops import camera
+
 
 @dataclasses.dataclass(frozen=True)
 class KeypointConfig:
@@ -230,7 +232,7 @@ def _check_views(images, depth, K, cam_to_world, static):
 
 def _pixel_rays(K, H, W, stride=1):
     v, u = np.mgrid[0:H:stride, 0:W:stride]
-    return np.stack([u, v, np.ones_like(u)], -1).astype(np.float64) @ np.linalg.inv(K).T  # (h, w, 3), z = 1
+    return camera.rays(np.stack([u, v], -1).astype(np.float64), np.asarray(K, np.float64))  # (h, w, 3), z = 1
 
 
 def floor_plane(depth, K, cam_to_world, static=None, cfg: FloorConfig = FloorConfig(), seed: int = 0):

@@ -34,7 +34,7 @@ import jaxlie
 import numpy as np
 from flax import struct
 
-from cm3d.ops import se3
+from cm3d.ops import robust, se3
 
 MIN_DEPTH = 1e-6  # camera z below which a projection is a cheirality failure
 
@@ -538,23 +538,11 @@ def reprojection_errors(graph: FactorGraph, x: Variables):
     return jnp.where(z > MIN_DEPTH, err, jnp.inf)
 
 
-def masked_median(v, mask):
-    """Median of ``v`` over ``mask`` (0 when empty), fixed shapes."""
-    n = jnp.sum(mask)
-    s = jnp.sort(jnp.where(mask, v, jnp.inf))
-    lo = jnp.clip((n - 1) // 2, 0, v.shape[0] - 1)
-    hi = jnp.clip(n // 2, 0, v.shape[0] - 1)
-    med = 0.5 * (s[lo] + s[hi])
-    return jnp.where(n > 0, med, 0.0)
-
-
 def adaptive_threshold(errors, valid, cfg: OutlierConfig = OutlierConfig()):
     """``τ = max(τ_min, median + n_mad · 1.4826 · MAD)`` of the valid errors (px)."""
     finite = valid & jnp.isfinite(errors)
     e = jnp.where(finite, errors, 0.0)
-    med = masked_median(e, finite)
-    mad = masked_median(jnp.abs(e - med), finite)
-    return jnp.maximum(cfg.tau_min_px, med + cfg.n_mad * 1.4826 * mad)
+    return jnp.maximum(cfg.tau_min_px, robust.masked_median(e, finite) + cfg.n_mad * robust.mad_sigma(e, finite))
 
 
 def reject_outliers(graph: FactorGraph, x: Variables, cfg: OutlierConfig = OutlierConfig()):

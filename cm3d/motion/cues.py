@@ -1,0 +1,79 @@
+"""The flow cue, the composition of all cues of a frame pair, and the mask warp used for tracking."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from cm3d.motion.frames import FramePrior, MotionConfig, MotionCues
+from cm3d.motion.geometry_cue import baseline_motion_cue, geometry_motion_cue, relative_pose
+from cm3d.motion.keypoint_cue import (
+    candidate_regions,
+    dynamic_keypoints,
+    keypoint_displacements,
+    robust_motion_cue,
+    static_reference,
+)
+from cm3d.ops import camera, components
+from cm3d.ops.gmm import fit_gmm, slowest_component_mask
+
+
+def flow_motion_cue(flow, cfg: MotionConfig = MotionConfig()):
+    """GMM on flow vectors (H, W, 2) -> (moving mask (H, W), :class:`GMMResult`).
+
+    The moving pixels are those outside the component of smallest mean flow magnitude.
+    """
+    H, W = flow.shape[:2]
+    res = fit_gmm(flow.reshape(-1, 2), cfg.gmm)
+    return slowest_component_mask(res).reshape(H, W), res
+
+
+def motion_cues(prior_t: FramePrior, prior_t2: FramePrior, flow, matches,
+                cfg: MotionConfig = MotionConfig()) -> MotionCues:
+    """All motion cues of frame t from the pair (t, t2): flow (H, W, 2) forward from t to t2 and
+    keypoint ``matches`` (:class:`cm3d.ops.keypoints.Matches`, padded). Pure; jit with ``cfg``
+    static, vmap over frames for a sequence."""
+    flow = jnp.asarray(flow, jnp.float32)
+    if flow.shape != prior_t.depth.shape + (2,):
+        raise ValueError(f"motion_cues: flow shape {flow.shape} does not match depth {prior_t.depth.shape}")
+    flow_mask, _ = flow_motion_cue(flow, cfg)
+    geo_mask, residual, valid, thr, rel = geometry_motion_cue(prior_t, prior_t2, flow, cfg)
+    candidates, labels = candidate_regions(flow_mask, geo_mask, valid, cfg)
+    disp, ray, kp_ok = keypoint_displacements(prior_t, prior_t2, matches, rel, cfg)
+    kp_dyn = dynamic_keypoints(disp, ray, kp_ok, cfg, static_reference(labels, matches, kp_ok, cfg))
+    robust, kp_dyn_inside = robust_motion_cue(labels, matches, kp_dyn, kp_ok, cfg)
+    base_rel = rel if cfg.baseline_refined_pose else relative_pose(prior_t, prior_t2)
+    baseline = baseline_motion_cue(prior_t, prior_t2, flow, base_rel, cfg)
+    return MotionCues(flow_mask=flow_mask, geo_mask=geo_mask, candidates=candidates, robust_mask=robust,
+                      baseline_mask=baseline, residual=residual, valid=valid, geo_threshold=thr,
+                      rel_pose=rel, kp_dynamic=kp_dyn_inside, kp_valid=kp_ok)
+
+
+def sequence_motion_cues(priors: FramePrior, flows, matches, cfg: MotionConfig = MotionConfig()) -> MotionCues:
+    """Cues of frames 0..S-2 of a sequence (priors with a leading S axis, flows (S-1, H, W, 2),
+    matches with a leading S-1 axis): one compiled ``vmap`` of :func:`motion_cues`."""
+    first = jax.tree.map(lambda a: a[:-1], priors)
+    second = jax.tree.map(lambda a: a[1:], priors)
+    return _batched(first, second, jnp.asarray(flows, jnp.float32), matches, cfg)
+
+
+@jax.jit
+def _warp(mask, flow):
+    H, W = mask.shape
+    grid = camera.pixel_grid(H, W, flow.dtype)
+    tgt = jnp.round(grid + flow).astype(jnp.int32)
+    u, v = tgt[..., 0], tgt[..., 1]
+    ok = mask & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    idx = jnp.where(ok, v * W + u, H * W).reshape(-1)
+    out = jnp.zeros(H * W + 1, bool).at[idx].max(ok.reshape(-1))[: H * W].reshape(H, W)
+    return components.closing(out, 1)
+
+
+def warp_mask(mask, flow):
+    """Forward-warp a mask (H, W) of frame t to frame t+1 with the flow (H, W, 2): every set pixel
+    is splatted to its rounded target, and the splat holes are closed (3x3 closing)."""
+    return _warp(jnp.asarray(mask, bool), jnp.asarray(flow, jnp.float32))
+
+
+_batched = jax.jit(jax.vmap(motion_cues, in_axes=(0, 0, 0, 0, None)), static_argnums=4)
+motion_cues_jit = jax.jit(motion_cues, static_argnums=4)

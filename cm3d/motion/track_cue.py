@@ -1,0 +1,102 @@
+"""Track cue: landmark tracks that move against the rigidly explained static scene over several frames.
+
+A mover as slow as the prior's pose noise is lost in the two-frame residual flow, but its track
+drifts off the rigidly explained scene every frame: per (seed block, frame) group a rigid
+correction is fitted robustly, and tracks whose RMS residual after it is an outlier are moving.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from cm3d.motion.frames import MotionConfig
+from cm3d.ops import robust, se3
+from cm3d.ops.robust import masked_median
+from cm3d.solvers.camera_motion import fit_camera_motion, reprojection
+
+
+def segment_median(x, group, valid, num_groups: int):
+    """Per-group median (lower middle value) of ``x[valid]`` (K,) by ``group`` (K,) int in
+    [0, num_groups): (num_groups,), 0 for an empty group. One sort, fixed shapes."""
+    g = jnp.where(valid, group, num_groups)
+    order = jnp.lexsort((jnp.where(valid, x, jnp.inf), g))
+    xs = x[order]
+    count = jax.ops.segment_sum(valid.astype(jnp.int32), group, num_groups)
+    start = jnp.cumsum(count) - count
+    med = xs[jnp.clip(start + (count - 1) // 2, 0, x.shape[0] - 1)]
+    return jnp.where(count > 0, med, 0.0)
+
+
+def track_residuals(points, poses, intrinsics, pose_idx, uv, valid, block, num_blocks: int,
+                    cfg: MotionConfig = MotionConfig()):
+    """Reprojection residuals of landmark tracks after each group's best rigid correction.
+
+    points (L, 3) world landmarks lifted from their seed pixel (prior depth, prior pose of the seed
+    frame); poses (W, 4, 4) cam_to_world priors and intrinsics (W, 3, 3) of the window's frames;
+    pose_idx, uv, valid (L * T,) the tracks' observations, landmark-major (observation t of
+    landmark l at ``l * T + t``, t = 0 the seed); block (L,) int in [0, num_blocks): the seeding
+    block (landmarks seeded from one frame share its pose error).
+
+    A prior pose error moves every static landmark seen in frame i and seeded in block b by one
+    rigid transform of camera i (the error of the pair's relative pose): per group (b, i), a
+    correction ``exp(delta) T`` of the landmarks' camera points is fitted by ``track_iters`` damped
+    Gauss-Newton steps with Geman-McClure weights at the group's robust scale (``1.4826`` x its
+    median residual, at least ``track_min_scale_px``), so tracks on moving objects stay outliers.
+    (A rigid model, not an affine image motion: the translation error's parallax depends on depth,
+    see docs/motion.md.) Returns (residual (L * T, 2) px, judged (L * T,)
+    bool: t > 0, in front of the camera, in a group of at least ``track_min_obs`` observations)."""
+    L = points.shape[0]
+    Kn = pose_idx.shape[0]
+    T = Kn // L
+    W = poses.shape[0]
+    G = num_blocks * W
+    dt = poses.dtype
+    pose_idx = jnp.asarray(pose_idx, jnp.int32)
+    group = jnp.repeat(jnp.asarray(block, jnp.int32), T) * W + pose_idx
+    point = jnp.repeat(jnp.arange(L), T)
+    j = jnp.tile(jnp.arange(T), L)
+    inv = se3.inverse(poses)[pose_idx]
+    X = jnp.einsum("kij,kj->ki", inv[:, :3, :3], points[point].astype(dt)) + inv[:, :3, 3]
+    Kk = intrinsics[pose_idx].astype(dt)
+    uv = jnp.asarray(uv, dt)
+    weight = (valid & (j > 0)).astype(dt)
+    eye = jnp.broadcast_to(jnp.eye(4, dtype=dt), (G, 4, 4))
+    _, _, _, ok0 = reprojection(eye, X, uv, Kk, weight, group)
+    fit = jax.ops.segment_sum(ok0.astype(jnp.int32), group, G) >= cfg.track_min_obs
+
+    def scale(rn, ok):
+        return jnp.maximum(cfg.track_min_scale_px, robust.MAD_TO_SIGMA * segment_median(rn, group, ok, G))[group]
+
+    corr = fit_camera_motion(X, uv, Kk, weight, eye, scale, cfg.track_iters, group, fit)
+    r, _, _, ok = reprojection(corr, X, uv, Kk, weight, group)
+    return jnp.where(ok[:, None], r, 0.0), ok & fit[group]
+
+
+def moving_tracks(points, poses, intrinsics, pose_idx, uv, valid, block, num_blocks: int,
+                  cfg: MotionConfig = MotionConfig()):
+    """The track cue: (L,) bool, landmark tracks that move against the static scene.
+
+    A mover as slow as the prior's pose noise (about 1 px per frame at 96x128) is lost in the
+    two-frame residual flow, but its track drifts off the rigidly explained scene by that much
+    every frame. Each track's RMS residual over its judged observations (:func:`track_residuals`)
+    is compared with ``max(track_min_px, median + track_n_mad 1.4826 MAD)`` over the judged tracks.
+    Arguments as :func:`track_residuals`; tracks without a judged observation are not moving.
+    Returns all False when ``cfg.track_cue`` is off."""
+    L = points.shape[0]
+    if not cfg.track_cue:
+        return jnp.zeros(L, bool)
+    r, judged = track_residuals(points, poses, intrinsics, pose_idx, uv, valid, block, num_blocks, cfg)
+    return moving_from_residuals(r, judged, L, cfg)
+
+
+def moving_from_residuals(r, judged, num_tracks: int, cfg: MotionConfig = MotionConfig()):
+    """The decision of :func:`moving_tracks` from :func:`track_residuals`' output: (L,) bool."""
+    L = num_tracks
+    T = judged.shape[0] // L
+    jl = judged.reshape(L, T)
+    n = jnp.sum(jl, -1)
+    rms = jnp.sqrt(jnp.sum(jnp.where(jl, jnp.sum(r * r, -1).reshape(L, T), 0.0), -1) / jnp.maximum(n, 1))
+    has = n > 0
+    tau = jnp.maximum(cfg.track_min_px, masked_median(rms, has) + cfg.track_n_mad * robust.mad_sigma(rms, has))
+    return has & (rms > tau)
