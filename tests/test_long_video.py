@@ -8,7 +8,6 @@ import pytest
 
 from cm3d import long_video as stitch
 from cm3d.long_video.overlap import shared_frames
-from cm3d.solvers.block_tridiagonal import block_tridiagonal
 from cm3d.solvers.chain_pose_graph import solve_chain
 from cm3d.data import io, synthetic
 from cm3d.eval import metrics
@@ -296,23 +295,8 @@ def test_whole_trajectory_refinement_lowers_error_and_survives_a_bad_chunk(video
     assert res_bad.refinement["pairs_used"] < FRAMES - 1 - 3
     e_bad = float(metrics.ate(res_bad.sequence.cam_to_world, gt))
     assert e_bad < float(metrics.ate(res_bad.poses_aligned, gt)), (e_bad, e_prior)
-    # the O(N) block-tridiagonal solve and inverse blocks against dense NumPy; hat matrix trace = 6N
-    rng = np.random.default_rng(2)
-    n = 5
-    L = rng.normal(size=(6 * n, 6 * n)) * (np.abs(np.subtract.outer(np.arange(6 * n) // 6, np.arange(6 * n) // 6)) <= 1)
-    H = L @ L.T + 6 * n * np.eye(6 * n)
-    H *= np.abs(np.subtract.outer(np.arange(6 * n) // 6, np.arange(6 * n) // 6)) <= 1
-    b = rng.normal(size=6 * n)
-    blk = lambda i, j: H[6 * i:6 * i + 6, 6 * j:6 * j + 6]  # noqa: E731
-    with jax.enable_x64(True):  # float64: checked against NumPy to 1e-9
-        D = jax.numpy.asarray(np.stack([blk(i, i) for i in range(n)]))
-        U = jax.numpy.asarray(np.stack([blk(i, i + 1) for i in range(n - 1)]))
-        x, Pd, C = (np.asarray(v) for v in block_tridiagonal(D, U, jax.numpy.asarray(b.reshape(n, 6))))
-        Hi = np.linalg.inv(H)
-        np.testing.assert_allclose(x.ravel(), np.linalg.solve(H, b), rtol=1e-9, atol=1e-12)
-        np.testing.assert_allclose(Pd, np.stack([Hi[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(n)]), atol=1e-12)
-        np.testing.assert_allclose(C, np.stack([Hi[6 * i:6 * i + 6, 6 * i + 6:6 * i + 12] for i in range(n - 1)]),
-                                   atol=1e-12)
+    # the hat matrix's trace (leverages of every factor component) is 6N
+    with jax.enable_x64(True):
         P = res.poses_aligned
         ia = np.arange(FRAMES - 1)
         g = stitch.frame_graph(P, ia, ia + 1, np.linalg.inv(P[ia]) @ P[ia + 1], np.full(6, 0.01), np.full(6, 0.1))
