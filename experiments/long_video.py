@@ -63,6 +63,7 @@ from cm3d import long_video as stitch  # noqa: E402
 from cm3d.data import synthetic  # noqa: E402
 from cm3d.outputs import write_json  # noqa: E402
 from cm3d.eval import metrics  # noqa: E402
+from cm3d.ops import sim3  # noqa: E402
 
 LEVELS = tuple(synthetic.NOISE_LEVELS)
 
@@ -108,7 +109,7 @@ def sim3_errors(T, truth, poses, unit):
     mean centre error (metres: ``unit`` chunk-a units per metre) of chunk b's ``poses`` placed by each."""
     from scipy.spatial.transform import Rotation
 
-    sT, sG = np.cbrt(np.linalg.det(T[:3, :3])), np.cbrt(np.linalg.det(truth[:3, :3]))
+    sT, sG = float(sim3.scale(np.asarray(T, np.float64))), float(sim3.scale(np.asarray(truth, np.float64)))
     rot = float(np.rad2deg(Rotation.from_matrix((T[:3, :3] / sT).T @ (truth[:3, :3] / sG)).magnitude()))
     ca, cb = poses[:, :3, 3] @ T[:3, :3].T + T[:3, 3], poses[:, :3, 3] @ truth[:3, :3].T + truth[:3, 3]
     return {"rot_deg": rot, "log_scale": float(np.log(sT / sG)),
