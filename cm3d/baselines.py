@@ -13,6 +13,7 @@ translation), jaxlie's (translation, rotation): sigmas are permuted here, nowher
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -167,11 +168,25 @@ def _extract(values, init, pose_used, point_ok):
     return poses, points
 
 
+@dataclasses.dataclass(frozen=True)
+class GTSAMSolution:
+    """GTSAM's optimum: poses (N, 4, 4), points (M, 3) float64; cost, initial_cost; iterations;
+    time_s of ``optimize()`` alone; history (error after each outer iteration) or None."""
+
+    poses: np.ndarray
+    points: np.ndarray
+    cost: float
+    initial_cost: float
+    iterations: int
+    time_s: float
+    history: np.ndarray | None = None
+
+
 def gtsam_solve(graph, init, max_iterations: int = 100, rel_tol: float = 1e-5, abs_tol: float = 1e-5,
-                history: bool = False, min_observations: int = 2) -> dict:
-    """Solve with GTSAM's ``LevenbergMarquardtOptimizer`` -> dict(poses, points, cost, iterations,
-    time_s, history). ``time_s`` times ``optimize()`` alone (graph building excluded); with
-    ``history`` a second run steps ``iterate()`` and records the error after each outer iteration."""
+                history: bool = False, min_observations: int = 2) -> GTSAMSolution:
+    """Solve with GTSAM's ``LevenbergMarquardtOptimizer`` -> :class:`GTSAMSolution` (graph building
+    excluded from ``time_s``); with ``history`` a second run steps ``iterate()`` and records the
+    error after each outer iteration."""
     import gtsam
 
     g, values, pose_used, point_ok = gtsam_graph(graph, init, min_observations)
@@ -181,8 +196,8 @@ def gtsam_solve(graph, init, max_iterations: int = 100, rel_tol: float = 1e-5, a
     result = opt.optimize()
     elapsed = time.perf_counter() - t0
     poses, points = _extract(result, init, pose_used, point_ok)
-    out = {"poses": poses, "points": points, "cost": float(g.error(result)),
-           "initial_cost": float(g.error(values)), "iterations": int(opt.iterations()), "time_s": elapsed}
+    out = GTSAMSolution(poses, points, float(g.error(result)), float(g.error(values)), int(opt.iterations()),
+                        elapsed)
     if history:
         opt = gtsam.LevenbergMarquardtOptimizer(g, values, params)
         hist = [opt.error()]
@@ -195,5 +210,5 @@ def gtsam_solve(graph, init, max_iterations: int = 100, rel_tol: float = 1e-5, a
             dec = before - after
             if (rel_tol and dec / before < rel_tol) or dec < abs_tol:
                 break
-        out["history"] = np.array(hist)
+        out = dataclasses.replace(out, history=np.array(hist))
     return out

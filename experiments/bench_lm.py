@@ -87,13 +87,13 @@ def bench_vs_gtsam(name, n, m, repeats, with_pcg):
         res, t = _timed(SOLVE, graph, init, opts)
         cm.append(t)
         ref = baselines.gtsam_solve(graph, init)
-        gt.append(ref["time_s"])
+        gt.append(ref.time_s)
     row = {"problem": name, "poses": n, "landmarks": m,
            "projections": int(np.sum(np.asarray(graph.projection.weight) > 0)),
            "cm3d_s": statistics.median(cm), "cm3d_min_s": min(cm),
            "gtsam_s": statistics.median(gt), "gtsam_min_s": min(gt),
-           "cm3d_iters": int(res.iterations), "cm3d_solves": int(res.linear_solves), "gtsam_iters": ref["iterations"],
-           "cm3d_cost": float(res.cost), "gtsam_cost": ref["cost"], "initial_cost": float(res.initial_cost)}
+           "cm3d_iters": int(res.iterations), "cm3d_solves": int(res.linear_solves), "gtsam_iters": ref.iterations,
+           "cm3d_cost": float(res.cost), "gtsam_cost": ref.cost, "initial_cost": float(res.initial_cost)}
     row["cm3d_per_iter_ms"] = 1e3 * row["cm3d_s"] / max(row["cm3d_iters"], 1)
     row["gtsam_per_iter_ms"] = 1e3 * row["gtsam_s"] / max(row["gtsam_iters"], 1)
     row["speedup"] = row["gtsam_s"] / row["cm3d_s"]

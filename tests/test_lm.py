@@ -43,13 +43,13 @@ def test_matches_gtsam_optimum_and_cost_history(problem):
         r = SOLVE(graph, init, OPTS)
     ref = baselines.gtsam_solve(graph, init, history=True)
     assert bool(r.converged)
-    assert float(r.cost) == pytest.approx(ref["cost"], rel=1e-9)
-    assert float(r.initial_cost) == pytest.approx(ref["initial_cost"], rel=1e-12)
-    assert int(r.iterations) == ref["iterations"]
+    assert float(r.cost) == pytest.approx(ref.cost, rel=1e-9)
+    assert float(r.initial_cost) == pytest.approx(ref.initial_cost, rel=1e-12)
+    assert int(r.iterations) == ref.iterations
     hist = np.asarray(r.cost_history)[: int(r.iterations) + 1]
-    np.testing.assert_allclose(hist, ref["history"], rtol=1e-8)
-    np.testing.assert_allclose(r.params.poses, ref["poses"], atol=1e-7)
-    np.testing.assert_allclose(r.params.points, ref["points"], atol=1e-6)
+    np.testing.assert_allclose(hist, ref.history, rtol=1e-8)
+    np.testing.assert_allclose(r.params.poses, ref.poses, atol=1e-7)
+    np.testing.assert_allclose(r.params.points, ref.points, atol=1e-6)
     R = np.asarray(r.params.poses[:, :3, :3])
     np.testing.assert_allclose(np.swapaxes(R, 1, 2) @ R, np.broadcast_to(np.eye(3), R.shape), atol=1e-14)
 

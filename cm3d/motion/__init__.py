@@ -21,18 +21,10 @@ Conventions: :mod:`cm3d.ops.camera` (cam_to_world poses, forward flow ``F[v, u] 
 from cm3d.motion.cues import flow_motion_cue, motion_cues, motion_cues_jit, sequence_motion_cues, warp_mask
 from cm3d.motion.frames import FramePrior, MotionConfig, MotionCues
 from cm3d.motion.geometry_cue import (
-    baseline_motion_cue,
-    ego_flow_rel,
-    geometry_motion_cue,
-    refine_relative_pose,
-    relative_pose,
+    baseline_motion_cue, ego_flow_rel, geometry_motion_cue, refine_relative_pose, relative_pose
 )
 from cm3d.motion.keypoint_cue import (
-    candidate_regions,
-    dynamic_keypoints,
-    keypoint_displacements,
-    robust_motion_cue,
-    static_reference,
+    candidate_regions, dynamic_keypoints, keypoint_displacements, robust_motion_cue, static_reference
 )
 from cm3d.motion.track_cue import moving_from_residuals, moving_tracks, segment_median, track_residuals
 

@@ -8,11 +8,7 @@ import jax.numpy as jnp
 from cm3d.motion.frames import FramePrior, MotionConfig, MotionCues
 from cm3d.motion.geometry_cue import baseline_motion_cue, geometry_motion_cue, relative_pose
 from cm3d.motion.keypoint_cue import (
-    candidate_regions,
-    dynamic_keypoints,
-    keypoint_displacements,
-    robust_motion_cue,
-    static_reference,
+    candidate_regions, dynamic_keypoints, keypoint_displacements, robust_motion_cue, static_reference
 )
 from cm3d.ops import camera, components
 from cm3d.ops.gmm import fit_gmm, slowest_component_mask

@@ -92,9 +92,3 @@ def region_area(labels) -> jnp.ndarray:
     """Area (H, W) int32 of the component each pixel belongs to (0 outside every component)."""
     area = region_sum(labels, (labels >= 0).astype(jnp.int32))
     return jnp.where(labels >= 0, area[jnp.maximum(labels, 0)], 0)
-
-
-def remove_small(mask, min_area: int) -> jnp.ndarray:
-    """``mask`` without its 4-connected components smaller than ``min_area`` pixels."""
-    labels = label_components(mask)
-    return (labels >= 0) & (region_area(labels) >= min_area)

@@ -75,11 +75,6 @@ class GMMResult:
     converged: jnp.ndarray
 
 
-def quadratic_features(z: jnp.ndarray) -> jnp.ndarray:
-    """Feature-major ``[1, x, y, x^2, xy, y^2]`` (6, N) of points (N, 2)."""
-    return _features(z[:, 0], z[:, 1])
-
-
 def _features(x, y):
     return jnp.stack([jnp.ones_like(x), x, y, x * x, x * y, y * y])
 

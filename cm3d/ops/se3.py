@@ -83,16 +83,6 @@ def ominus(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
     return log(inverse(b) @ a)
 
 
-def so3_exp(w: jnp.ndarray) -> jnp.ndarray:
-    """Rotation matrix (..., 3, 3) from an axis-angle vector (..., 3) in radians."""
-    return jaxlie.SO3.exp(w).as_matrix()
-
-
-def so3_log(R: jnp.ndarray) -> jnp.ndarray:
-    """Axis-angle vector (..., 3) of a rotation matrix (..., 3, 3)."""
-    return jaxlie.SO3.from_matrix(R).log()
-
-
 def orthonormalize(R: jnp.ndarray) -> jnp.ndarray:
     """Nearest rotation (Frobenius) to a 3x3 matrix by SVD: ``U diag(1, 1, det(U V^T)) V^T``."""
     U, _, Vt = jnp.linalg.svd(R)

@@ -424,9 +424,7 @@ class GraphConfig:
       against ``T_0^{0 -1} T_i^0``. The foundation model's pose errors are independent per frame,
       not a random walk, so each pose is held near its prior placement relative to the anchor with
       the same σ at every distance from it; a consecutive chain lets a coherent pull (tracks on a
-      mover the motion cue missed) accumulate into a drift of ``σ √i`` (measured on the 200-frame
-      video at 96x128: chunk 2 ATE 0.075 vs 0.053, prior 0.019; mean of 7 chunks 0.0286 vs 0.0220).
-      Not the default: on ``experiments/camera_pose.py --quick`` (48x64, 8 frames) it was worse;
+      mover the motion cue missed) accumulate into a drift of ``σ √i`` (docs/factor_graph.md);
     * ``"both"``: the two sets (2 (N − 1) slots).
     """
 

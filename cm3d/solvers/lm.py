@@ -29,27 +29,13 @@ from flax import struct
 from jax.custom_batching import custom_vmap
 
 from cm3d.solvers.factors import FactorGraph, Variables, orthonormalize_poses
-from cm3d.solvers.lm_options import (  # noqa: F401  (public API of the solver)
-    BACKWARDS,
-    BATCHINGS,
-    IMPLICIT_OPTIONS,
-    LINEAR_SOLVERS,
-    PAIR_OVERFLOW,
-    STOP_REASONS,
-    LMOptions,
-    LMResult,
-    use_dense,
+from cm3d.solvers.lm_options import (  # noqa: F401
+    BACKWARDS, BATCHINGS, IMPLICIT_OPTIONS, LINEAR_SOLVERS, PAIR_OVERFLOW, STOP_REASONS, LMOptions, LMResult,
+    use_dense
 )
 from cm3d.solvers.newton import exact_newton_solve, implicit_bwd, newton_damping
 from cm3d.solvers.normal_equations import (  # noqa: F401
-    Linearization,
-    Structure,
-    gradient,
-    linearize,
-    linearized_error,
-    retract,
-    schur_pair_count,
-    structure,
+    Linearization, Structure, gradient, linearize, linearized_error, retract, schur_pair_count, structure
 )
 from cm3d.solvers.schur import SchurSystem, damped_step, factor_dense, schur_solve
 

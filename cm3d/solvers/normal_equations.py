@@ -14,18 +14,11 @@ from flax import struct
 
 from cm3d.ops import se3
 from cm3d.solvers.factors import (
-    FactorGraph,
-    Variables,
-    huber_loss,
-    huber_weight,
-    mtm,
-    mtv,
-    mv,
-    point_prior_residual,
-    pose_factor_jacobians,
-    projection_linearize,
+    FactorGraph, Variables, huber_loss, huber_weight, mtm, mtv, mv, point_prior_residual,
+    pose_factor_jacobians, projection_linearize
 )
 from cm3d.solvers.lm_options import LMOptions
+
 
 @struct.dataclass
 class Structure:
