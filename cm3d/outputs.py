@@ -1,8 +1,5 @@
-"""Writers for what a user looks at in ``--out DIR``: trajectories, masks, point clouds, JSON.
-
-Every writer is atomic (:func:`cm3d.data.atomic.atomic_write`): an interrupted run never leaves a
-half-written file in place of a good one.
-"""
+"""Writers for what a user looks at in ``--out DIR`` (trajectories, masks, point clouds, JSON) and the
+one-line window report. Every writer is atomic: an interrupted run never leaves a half-written file."""
 
 from __future__ import annotations
 
@@ -81,10 +78,6 @@ def write_ply(path, points: np.ndarray, colors: np.ndarray | None = None) -> Non
     with atomic_write(path) as f:
         f.write(("\n".join(header) + "\nend_header\n").encode("ascii"))
         f.write(rec.tobytes())
-
-
-# ----------------------------------------------------------------------------------------------
-# A pipeline run's results (``cm3d run`` / ``cm3d demo``)
 
 
 def static_map(seq, poses: np.ndarray, masks: np.ndarray, stride: int = 4, voxel_ratio: float = 200.0,

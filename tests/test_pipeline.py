@@ -156,7 +156,7 @@ def test_memory_without_a_recall_leaves_the_sequence_as_memory_off(visits, prepa
     assert _ate(visits[1], own.poses) <= _ate(visits[1], alone.poses) + 1e-9
 
 
-def test_restore_depth_scale_undoes_a_shrunk_window():
+def test_rescale_window_undoes_a_shrunk_window():
     rng = np.random.default_rng(0)
     init = np.tile(np.eye(4, dtype=np.float32), (5, 1, 1))
     init[:, :3, 3] = rng.normal(size=(5, 3)) * 0.1
@@ -165,11 +165,11 @@ def test_restore_depth_scale_undoes_a_shrunk_window():
     seed = np.repeat(np.arange(0, 5, 2, dtype=np.int32), 7)[:20]
     shrunk = init.copy()
     shrunk[:, :3, 3] *= 0.4  # the graph's scale gauge moved: cameras and points shrink about slot 0
-    fixed = pipeline.restore_depth_scale(jnp.asarray(shrunk), jnp.asarray(init), jnp.asarray(pts * 0.4),
-                                         jnp.asarray(pts), jnp.asarray(seed), jnp.ones(20, bool))
+    fixed, _ = pipeline.rescale_window(jnp.asarray(shrunk), jnp.asarray(pts * 0.4), jnp.asarray(init),
+                                       jnp.asarray(pts), jnp.asarray(seed), jnp.ones(20, bool))
     np.testing.assert_allclose(fixed, init, atol=1e-5)
-    same = pipeline.restore_depth_scale(jnp.asarray(init), jnp.asarray(init), jnp.asarray(pts), jnp.asarray(pts),
-                                        jnp.asarray(seed), jnp.zeros(20, bool))
+    same, _ = pipeline.rescale_window(jnp.asarray(init), jnp.asarray(pts), jnp.asarray(init), jnp.asarray(pts),
+                                      jnp.asarray(seed), jnp.zeros(20, bool))
     np.testing.assert_allclose(same, init, atol=1e-6)
 
 

@@ -13,4 +13,4 @@ from cm3d.pipeline.state import (Landmarks, MapState, MemoryCursor, Window, begi
 from cm3d.pipeline.step import (StepOutputs, WindowResult, _run_sequence, buffer_frame, run_sequence,  # noqa: F401
                                 static_mask, step, step_jit, window_end)
 from cm3d.pipeline.window import (factor_graph, gate_refinement, prior_consistent_tracks,  # noqa: F401
-                                  rescale_window, restore_depth_scale, structure_only_cost)
+                                  rescale_window, structure_only_cost)

@@ -94,8 +94,7 @@ def small_config(**changes) -> PipelineConfig:
         track=trajectory.TrackConfig(cell=8, keyframe_every=2, track_length=4, border=2, min_track=2),
         memory=memory.MemoryConfig(max_maps=4, max_points=256, max_keyframes=4, max_keypoints=64,
                                    icp_points=64, ransac_hypotheses=64, min_inliers=20,
-                                   # distinct 3D points (keypoint clusters): a 48x64 window has few
-                                   min_keypoint_inliers=4),
+                                   min_keypoint_inliers=4),  # a 48x64 window has few distinct 3D points
         feature_capacity=32, keypoints=KeypointConfig(max_matches=64))
     return dataclasses.replace(base, **changes)
 

@@ -1,6 +1,5 @@
-"""Static landmarks (paper: static landmark tracking): seeded on the most confident static pixel of
-each cell, lifted with the prior depth, followed by the flow from frame to frame, one frame at a
-time (:mod:`cm3d.trajectory`'s landmark rules inside the step)."""
+"""Static landmarks: seeded on the most confident static pixel of each cell, lifted with the prior
+depth, followed by the flow one frame at a time (:mod:`cm3d.trajectory`'s rules inside the step)."""
 
 from __future__ import annotations
 
@@ -13,7 +12,7 @@ from cm3d.pipeline.config import PipelineConfig
 from cm3d.pipeline.state import Landmarks
 
 
-def _pixel(uv, h: int, w: int):
+def nearest_pixel(uv, h: int, w: int):
     """Nearest pixel (row, column) of uv (L, 2), clipped to the image."""
     r = jnp.clip(jnp.round(uv[:, 1]).astype(jnp.int32), 0, h - 1)
     c = jnp.clip(jnp.round(uv[:, 0]).astype(jnp.int32), 0, w - 1)
@@ -30,7 +29,7 @@ def advance_landmarks(lm_: Landmarks, flow, static, slot, cfg: PipelineConfig) -
     fl = trajectory.bilinear(flow[None], jnp.zeros(lm_.uv.shape[0], jnp.int32), lm_.uv)
     nxt = lm_.uv + fl
     inside = (nxt[:, 0] >= b) & (nxt[:, 0] <= w - 1 - b) & (nxt[:, 1] >= b) & (nxt[:, 1] <= h - 1 - b)
-    r, c = _pixel(nxt, h, w)
+    r, c = nearest_pixel(nxt, h, w)
     j = slot - lm_.seed
     good = lm_.alive & inside & static[r, c] & (j >= 1) & (j < T)
     put = (jnp.arange(T)[None, :] == j[:, None]) & good[:, None]
@@ -44,7 +43,7 @@ def seed_landmarks(lm_: Landmarks, slot, depth, conf, static, K, pose, cfg: Pipe
     the world with the prior depth and the slot's initial pose (4, 4)."""
     uv, ok = trajectory.select_landmark_pixels(depth, conf, static, cfg.track)
     C = uv.shape[0]
-    r, c = _pixel(uv, *depth.shape)
+    r, c = nearest_pixel(uv, *depth.shape)
     d = depth[r, c]
     pw = camera.backproject(uv, d, K, pose)
     ok = ok & (d > 0)

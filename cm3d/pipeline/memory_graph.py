@@ -1,6 +1,5 @@
-"""Recall / verify / update inside the window: the refined window is identified against the bank's
-other maps, the recalled surface holds the landmarks near it in a second LM solve (kept only when a
-χ² test on the window's own observations accepts it), then the bank is updated."""
+"""Recall / verify / update inside the window: identify the refined window, hold its landmarks on the
+recalled surface in a second LM solve (kept when a χ² test accepts it), update the bank."""
 
 from __future__ import annotations
 
@@ -15,7 +14,7 @@ from cm3d import memory, trajectory
 from cm3d.ops import robust, sim3
 from cm3d.pipeline.config import PipelineConfig
 from cm3d.pipeline.state import Landmarks, MemoryCursor, Window
-from cm3d.pipeline.window import chi2_threshold, rescale_window, restore_depth_scale, structure_only_cost
+from cm3d.pipeline.window import chi2_threshold, rescale_window, structure_only_cost
 from cm3d.solvers import factors, lm
 
 
@@ -123,11 +122,9 @@ def sequence_query(bank: memory.MemoryBank, written, entry: memory.MapEntry, mem
 
     def merged(entry):
         b = memory.update_map(bank, m, entry, jnp.eye(4, dtype=jnp.float32), mem_cfg)
-        kp = memory.Keypoints(b.kp_points[m], b.kp_desc[m], b.kp_valid[m])
-        return entry.replace(points=b.points[m], normals=b.normals[m], conf=b.conf[m], colors=b.colors[m],
-                             point_valid=b.point_valid[m], kf_desc=b.kf_desc[m], kf_valid=b.kf_valid[m],
-                             cloud_desc=b.cloud_desc[m], voxel_size=b.voxel_size[m],
-                             keypoints=kp)  # both at the bank's keypoint capacity (bank_config)
+        stored = ("points", "normals", "conf", "colors", "point_valid", "kf_desc", "kf_valid", "cloud_desc", "voxel_size")
+        return entry.replace(**{k: getattr(b, k)[m] for k in stored},  # keypoints: both at the bank's capacity
+                             keypoints=memory.Keypoints(b.kp_points[m], b.kp_desc[m], b.kp_valid[m]))
 
     return jax.lax.cond(written >= 0, merged, lambda e: e, entry)
 
@@ -164,7 +161,7 @@ def memory_refinement(win: Window, lm_: Landmarks, ref0: trajectory.Refinement, 
     cost_own, _ = structure_only_cost(g0, poses1, res.params.points, min_observations=rc.solver.min_observations)
     stat = (2.0 * (cost_own - ref0.result.cost)).astype(win.poses.dtype)
     thr = chi2_threshold(obs, ref0.inlier, win.poses.shape[0], rc.gate_quantile, win.poses.dtype)
-    fixed = restore_depth_scale(poses1, win.poses, res.params.points, lm_.points, lm_.seed, first)
+    fixed = rescale_window(poses1, res.params.points, win.poses, lm_.points, lm_.seed, first)[0]
     fixed = jnp.where(win.valid[:, None, None], fixed, win.poses)
     accept = (jnp.sum(matched) >= cfg.min_memory_landmarks) & (stat <= thr) & jnp.all(jnp.isfinite(fixed))
     return fixed, accept, A, matched, stat, thr

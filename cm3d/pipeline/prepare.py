@@ -1,5 +1,4 @@
-"""Host-side work before the compiled step: OpenCV flow, keypoint matches and features, resampling
-to ``1 / stride`` and padding to whole windows, into fixed-shape :class:`Inputs`."""
+"""Host-side work before the compiled step: OpenCV flow, keypoints, ``1 / stride``, padding."""
 
 from __future__ import annotations
 
@@ -87,10 +86,9 @@ def _front_end(images: np.ndarray, partner: np.ndarray, cfg: PipelineConfig, flo
 
 
 def prepare(sequence, cfg: PipelineConfig = PipelineConfig(), flow=None, progress=None) -> Inputs:
-    """Host-side work for a :class:`cm3d.data.Sequence`: OpenCV flow and keypoint matches between
-    each frame and its partner, per-frame keypoint features for the memory, resampling to 1/stride,
-    padding to :func:`padded_length`. ``flow``: optional precomputed forward flow (S-1, H, W, 2);
-    ``progress``: optional callable ``(done, total)`` after each frame. Returns numpy :class:`Inputs`."""
+    """Numpy :class:`Inputs` of a :class:`cm3d.data.Sequence`: flow and keypoint matches with each
+    frame's partner, keypoint features, 1/stride, padding to :func:`padded_length`. ``flow``: optional
+    precomputed forward flow (S-1, H, W, 2); ``progress``: optional ``(done, total)`` per frame."""
     from cm3d.ops import keypoints as okp
 
     S, H, W = sequence.depth.shape

@@ -99,11 +99,8 @@ def recalled_earlier_map(windows) -> bool:
 
 @dataclasses.dataclass
 class SequenceResult:
-    """What the pipeline found in one sequence (numpy, input resolution).
-
-    poses: (S, 4, 4) refined cam_to_world; prior: (S, 4, 4) the input prior; masks: (S, H, W) bool
-    dynamic masks; windows: one :class:`WindowRecord` per window;
-    sequence: the input :class:`cm3d.data.Sequence`."""
+    """One sequence's results (numpy, input resolution): poses (S, 4, 4) refined cam_to_world, prior
+    (S, 4, 4), masks (S, H, W) dynamic, windows (one :class:`WindowRecord` each), the input sequence."""
 
     poses: np.ndarray
     prior: np.ndarray
@@ -132,12 +129,9 @@ def collect(outputs: StepOutputs, sequence, cfg: PipelineConfig = PipelineConfig
 
 def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBank | None = None,
         progress=None) -> tuple[memory.MemoryBank, list[SequenceResult]]:
-    """The whole pipeline on one or several visits (:class:`cm3d.data.Sequence` or paths any
-    loader reads), threading one state: the memory bank persists across visits.
-
-    ``bank``: a memory bank to start from (e.g. :func:`cm3d.memory.load`); ``progress``: optional
-    callable ``(stage, done, total)``. Returns (the updated bank, one :class:`SequenceResult` per visit).
-    """
+    """The pipeline on one or several visits (sequences or paths any loader reads) threading one
+    memory bank (``bank``: one to start from); ``progress``: optional ``(stage, done, total)``.
+    Returns (the updated bank, one :class:`SequenceResult` per visit)."""
     from cm3d.data.loaders import load_input
 
     if not isinstance(sequences, (list, tuple)):

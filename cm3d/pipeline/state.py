@@ -49,9 +49,8 @@ class Landmarks:
 
 @struct.dataclass
 class MemoryCursor:
-    """Where the sequence stands in the memory: ``recalled``, the map it recalled from an earlier
-    sequence (-1 none), with ``transform`` (4, 4), its Sim(3) placement sequence -> map; ``written``,
-    the map this sequence stored (-1 none)."""
+    """Where the sequence stands in the memory: ``recalled``, the map recalled from an earlier one (-1
+    none) with ``transform`` (4, 4) sequence -> map; ``written``, the map this sequence stored (-1 none)."""
 
     recalled: Any
     transform: Any

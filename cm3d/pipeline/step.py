@@ -15,7 +15,7 @@ from cm3d import memory
 from cm3d.motion import motion_cues
 from cm3d.ops import descriptors, se3
 from cm3d.pipeline.config import PipelineConfig, bank_config
-from cm3d.pipeline.landmarks import advance_landmarks, seed_landmarks
+from cm3d.pipeline.landmarks import advance_landmarks, nearest_pixel, seed_landmarks
 from cm3d.pipeline.memory_graph import MemoryStep, RecallReport, recall_verify_update
 from cm3d.pipeline.prepare import Inputs
 from cm3d.pipeline.state import Landmarks, MapState, MemoryCursor, Window, begin_sequence
@@ -58,8 +58,7 @@ class WindowResult:
 
 @struct.dataclass
 class StepOutputs:
-    """Per-frame outputs: dynamic mask (h, w), initial pose (4, 4), window_end (a window was
-    refined at this frame: ``window`` holds it), valid (a real frame)."""
+    """Per frame: dynamic mask (h, w), initial pose (4, 4), window_end (``window`` holds a result), valid."""
 
     mask: Any
     init_pose: Any
@@ -84,9 +83,7 @@ def buffer_frame(win: Window, s, inputs_t: Inputs, init_pose, static, cfg: Pipel
     f = inputs_t.frame
     desc = descriptors.image_descriptor(f.image, static, factor=max(1, 4 // cfg.stride))
     fuv = inputs_t.features.uv
-    h, w = static.shape
-    fr = jnp.clip(jnp.round(fuv[:, 1]).astype(jnp.int32), 0, h - 1)
-    fc = jnp.clip(jnp.round(fuv[:, 0]).astype(jnp.int32), 0, w - 1)
+    fr, fc = nearest_pixel(fuv, *static.shape)
     return win.replace(poses=_put(win.poses, s, init_pose), intrinsic=_put(win.intrinsic, s, f.intrinsic),
                        depth=_put(win.depth, s, f.depth), conf=_put(win.conf, s, f.depth_conf),
                        image=_put(win.image, s, f.image), static=_put(win.static, s, static),

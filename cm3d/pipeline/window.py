@@ -161,12 +161,6 @@ def rescale_window(poses, points, init_poses, init_points, seed, valid):
     return poses.at[:, :3, 3].set(c0 + (poses[:, :3, 3] - c0) / r), c0 + (points - c0) / r
 
 
-def restore_depth_scale(poses, init_poses, points, init_points, seed, valid):
-    """The camera centres of :func:`rescale_window` alone: the window's poses (W, 4, 4) with their
-    scale gauge fixed to the prior depth's."""
-    return rescale_window(poses, points, init_poses, init_points, seed, valid)[0]
-
-
 def factor_graph(win: Window, lm_: Landmarks, cfg: PipelineConfig):
     """The window's factor graph without memory: tracks checked against the prior
     (:func:`prior_consistent_tracks`) and the track cue (:func:`cm3d.motion.moving_tracks`), LM with
@@ -185,7 +179,7 @@ def factor_graph(win: Window, lm_: Landmarks, cfg: PipelineConfig):
     ref = gate_refinement(win, lm_.points, obs, ref, cfg)
     n_bad = jnp.sum(obs_all_first & ~first)
     # the scale fix belongs to refined poses only: when the gate keeps the prior, so does the scale
-    fixed = restore_depth_scale(ref.poses, win.poses, ref.points, lm_.points, lm_.seed, first)
+    fixed = rescale_window(ref.poses, ref.points, win.poses, lm_.points, lm_.seed, first)[0]
     poses = jnp.where(ref.refined, fixed, ref.poses)
     poses = jnp.where(win.valid[:, None, None], poses, win.poses)
     return ref, poses, obs, n_bad
