@@ -5,8 +5,9 @@
                                                 [--resize 0.5] [--max-frames N] [--quick] [--json PATH]
 
 ``DIR`` (default ``../shared/data/davis2016``, or under ``$CM3D_SHARED_DATA``) holds DAVIS-layout
-folders ``SEQ/images/*.jpg`` and ``SEQ/masks/*.png`` (binary foreground mask of every frame). The
-videos have no depth and no poses, so only the two stages that need neither are measured:
+folders ``SEQ/images/*.jpg`` and ``SEQ/masks/*.png`` (binary foreground mask of every frame;
+:func:`cm3d.data.davis.load_davis`). The videos have no depth and no poses, so only the two
+stages that need neither are measured:
 
 * ``track``: :func:`cm3d.refine.refine_and_track` (GrabCut refinement, flow-warped tracking) with
   frame 0's *ground-truth* mask as its detection and nothing detected afterwards: DAVIS's
@@ -42,32 +43,6 @@ SHARED = Path(os.environ.get("CM3D_SHARED_DATA", Path(__file__).resolve().parent
 DEFAULT_DATA = SHARED / "davis2016"
 
 
-def load_davis(folder, resize: float = 1.0, max_frames: int | None = None):
-    """A DAVIS-layout folder -> (images (S, H, W, 3) uint8 RGB, masks (S, H, W) bool)."""
-    import cv2
-
-    folder = Path(folder)
-    files = sorted((folder / "images").glob("*.jpg")) or sorted((folder / "images").glob("*.png"))
-    if not files:
-        raise ValueError(f"{folder}: no images/*.jpg or *.png (expected the DAVIS layout SEQ/images, SEQ/masks)")
-    files = files[:max_frames]
-    images, masks = [], []
-    for p in files:
-        img = cv2.imread(str(p), cv2.IMREAD_COLOR)
-        m = cv2.imread(str(folder / "masks" / f"{p.stem}.png"), cv2.IMREAD_GRAYSCALE)
-        if img is None:
-            raise ValueError(f"{p}: cannot read image")
-        if m is None:
-            raise ValueError(f"{folder / 'masks' / (p.stem + '.png')}: missing or unreadable mask")
-        if resize != 1.0:
-            size = (int(round(img.shape[1] * resize)), int(round(img.shape[0] * resize)))
-            img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
-            m = cv2.resize(m, size, interpolation=cv2.INTER_NEAREST)
-        images.append(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
-        masks.append(m > 127)
-    return np.stack(images), np.stack(masks)
-
-
 def region_j(pred: np.ndarray, gt: np.ndarray) -> float:
     """DAVIS J: mean over frames of IoU (1 for an empty prediction on an empty ground truth)."""
     inter = (pred & gt).sum((1, 2))
@@ -93,6 +68,7 @@ def main() -> None:
     import jax
 
     from cm3d import motion, refine
+    from cm3d.data.davis import load_davis
     from cm3d.ops import flow as flow_ops
     from cm3d.outputs import write_json
 

@@ -1,0 +1,103 @@
+"""7-Scenes folders (real redkitchen frames, holes included), DAVIS folders, and bad folders."""
+
+import shutil
+
+import numpy as np
+import pytest
+
+from cm3d.data import davis, io, priors, sevenscenes
+
+
+@pytest.fixture(scope="module")
+def kitchen(shared_data):
+    return shared_data / "sevenscenes_redkitchen"
+
+
+def test_loads_real_frames_with_holes(kitchen):
+    seq = sevenscenes.load_sevenscenes(kitchen, "160:166")
+    assert seq.num_frames == 3 and seq.image_size == (480, 640)
+    assert seq.meta["frames"] == [160, 162, 164]
+    np.testing.assert_array_equal(seq.timestamps, [160, 162, 164])
+    holes = seq.depth == 0
+    assert 0.01 < holes.mean() < 0.5, "real Kinect depth has holes"
+    np.testing.assert_array_equal(seq.depth_conf == 0, holes)
+    valid = seq.depth[~holes]
+    assert 0.3 < np.median(valid) < 5.0, "metres"
+    np.testing.assert_allclose(seq.intrinsic[0], [[585, 0, 320], [0, 585, 240], [0, 0, 1]])
+    T = sevenscenes.read_pose(kitchen / "frame-000160.pose.txt")
+    np.testing.assert_allclose(seq.gt.cam_to_world[0], T)
+    np.testing.assert_allclose(seq.cam_to_world, seq.gt.cam_to_world)
+    io.validate_sequence(seq)  # holes (depth 0, confidence 0) are valid input
+
+
+def test_frames_spec_and_resize(kitchen):
+    assert sevenscenes.frame_numbers(kitchen, "390:470:2") == [390, 394, 398, 462, 466]
+    assert sevenscenes.frame_numbers(kitchen, ":104")[-1] == 102
+    assert sevenscenes.parse_frames("::3") == (None, None, 3)
+    for bad in ("a:b", "1:2:0", "5:3", "1:2:3:4"):
+        with pytest.raises(ValueError, match="--frames"):
+            sevenscenes.parse_frames(bad)
+    with pytest.raises(ValueError, match="selects none"):
+        sevenscenes.frame_numbers(kitchen, "2000:3000")
+    seq = sevenscenes.load_sevenscenes(kitchen, "160:162", resize=0.5)
+    assert seq.image_size == (240, 320)
+    np.testing.assert_allclose(seq.intrinsic[0], [[292.5, 0, 159.75], [0, 292.5, 119.75], [0, 0, 1]])
+
+
+def test_priors_from_real_frames_keep_holes(kitchen):
+    seq = sevenscenes.load_sevenscenes(kitchen, "160:180", resize=0.25)
+    p = priors.priors_for(seq, "moderate", seed=3)
+    holes = seq.depth == 0
+    assert (p.depth[holes] == 0).all() and (p.depth_conf[holes] == 0).all()
+    assert (p.depth_conf[~holes] >= 1).all()
+    np.testing.assert_allclose(p.cam_to_world[0], np.eye(4), atol=1e-12)
+    io.validate_sequence(p)
+
+
+def _copy(kitchen, tmp_path, frames=(160, 162)):
+    d = tmp_path / "seq"
+    d.mkdir()
+    shutil.copy(kitchen / "camera-intrinsics.txt", d)
+    for n in frames:
+        for kind in ("color.jpg", "depth.png", "pose.txt"):
+            shutil.copy(kitchen / f"frame-{n:06d}.{kind}", d)
+    return d
+
+
+def test_bad_folders(kitchen, tmp_path):
+    d = _copy(kitchen, tmp_path)
+    (d / "camera-intrinsics.txt").unlink()
+    with pytest.raises(ValueError, match="camera-intrinsics.txt missing"):
+        sevenscenes.load_sevenscenes(d)
+    shutil.copy(kitchen / "camera-intrinsics.txt", d)
+    (d / "frame-000162.depth.png").write_bytes(b"not a png")
+    with pytest.raises(ValueError, match="frame-000162.depth.png: unreadable depth"):
+        sevenscenes.load_sevenscenes(d)
+    shutil.copy(kitchen / "frame-000162.depth.png", d)
+    (d / "frame-000162.pose.txt").unlink()
+    seq = sevenscenes.load_sevenscenes(d)  # without --prior-noise a missing pose is allowed
+    assert seq.gt is None
+    with pytest.raises(ValueError, match="frame 162: frame-000162.pose.txt missing"):
+        sevenscenes.load_sevenscenes(d, require_poses=True)
+    with pytest.raises(ValueError, match="ground-truth poses"):
+        priors.priors_for(seq, "moderate")
+    with pytest.raises(ValueError, match="not a 7-Scenes folder"):
+        sevenscenes.frame_numbers(tmp_path)
+
+
+def test_frame_without_any_depth_is_named(kitchen, tmp_path):
+    import cv2
+
+    d = _copy(kitchen, tmp_path)
+    cv2.imwrite(str(d / "frame-000162.depth.png"), np.zeros((480, 640), np.uint16))
+    with pytest.raises(ValueError, match="frame 162 has no usable depth"):
+        sevenscenes.load_sevenscenes(d)
+
+
+def test_davis_frames(shared_data):
+    images, masks = davis.load_davis(shared_data / "davis2016" / "blackswan", resize=0.25, max_frames=3)
+    assert images.shape == (3, 120, 214, 3) and images.dtype == np.uint8
+    assert masks.shape == (3, 120, 214) and masks.dtype == bool
+    assert 0.02 < masks.mean() < 0.5, "a foreground object on every frame"
+    with pytest.raises(ValueError, match="DAVIS layout"):
+        davis.load_davis(shared_data / "davis2016")
