@@ -261,7 +261,7 @@ def main() -> None:
                 false_recalls += bool(acc)
             e = err or {"rot_deg": float("nan"), "trans_m": float("nan"), "scale_err_pct": float("nan")}
             print(f"{a:4d}/{b:<4d}  {kind:>8s} {100 * ov:6.1f}% {('yes' if acc else 'no'):>8s} {top:>9s} "
-                  f"{max(best['keypoint_inliers'] or [0]):7d} {e['rot_deg']:6.2f} {e['trans_m']:7.3f} "
+                  f"{max(best.keypoint_inliers or [0]):7d} {e['rot_deg']:6.2f} {e['trans_m']:7.3f} "
                   f"{e['scale_err_pct']:7.2f}")
     med = lambda k: float(np.median([r[k] for r in reloc])) if reloc else None  # noqa: E731
     figures |= {"revisits_recalled": recalled, "revisits_total": len(revisits), "false_recalls": false_recalls,

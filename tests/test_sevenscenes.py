@@ -101,3 +101,12 @@ def test_davis_frames(shared_data):
     assert 0.02 < masks.mean() < 0.5, "a foreground object on every frame"
     with pytest.raises(ValueError, match="DAVIS layout"):
         davis.load_davis(shared_data / "davis2016")
+
+
+def test_holes_round_trip_through_npz(kitchen, tmp_path):
+    seq = priors.priors_for(sevenscenes.load_sevenscenes(kitchen, "160:164", resize=0.25), "slight", seed=0)
+    io.save_sequence(tmp_path / "k.npz", seq)
+    back = io.load_sequence(tmp_path / "k.npz")
+    np.testing.assert_array_equal(back.depth, seq.depth)
+    np.testing.assert_array_equal(back.depth_conf == 0, seq.depth == 0)
+    np.testing.assert_array_equal(back.gt.depth, seq.gt.depth)
