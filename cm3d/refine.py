@@ -87,26 +87,6 @@ def sample_prompts(mask: np.ndarray, per_region: int = 8, seed: int = 0, min_are
     return np.concatenate(pts).astype(np.int32), np.concatenate(ids).astype(np.int32), labels.astype(np.int32)
 
 
-def _geometry_image(image, hints: RefineHints) -> np.ndarray:
-    """uint8 3-channel feature image: gray, log depth and residual flow (each stretched to 0..255)."""
-    import cv2
-
-    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32)
-    chans = [gray]
-    for a in (hints.depth, hints.residual):
-        if a is None:
-            chans.append(gray)
-            continue
-        a = np.asarray(a, np.float32)
-        if a is hints.depth:
-            a = np.log(np.maximum(a, 1e-6))
-        else:
-            a = np.log1p(np.maximum(a, 0.0))
-        lo, hi = np.percentile(a, [1, 99])
-        chans.append(np.clip((a - lo) / max(hi - lo, 1e-6) * 255.0, 0, 255))
-    return np.ascontiguousarray(np.stack(chans, -1).astype(np.uint8))
-
-
 def _px(value: int, width: int, reference: int) -> int:
     """A pixel size given for images ``reference`` wide, scaled to ``width`` (at least 1 when > 0)."""
     return 0 if value <= 0 else max(1, int(round(value * width / reference)))
@@ -120,15 +100,13 @@ class GrabCutRefiner:
     mask eroded by ``core_px`` (so a halo of a few pixels around the coarse mask is decided by the
     colour models); probable foreground in the rest of the coarse mask; probable background in a
     ``band_px`` ring around it; definite background elsewhere. Pixel sizes are for images
-    ``reference_width`` wide and scale with the width. ``features``: "rgb" segments the colour
-    image (default, best on the benchmark); "geometry" segments (gray, log depth, log residual).
+    ``reference_width`` wide and scale with the width. GrabCut segments the colour image.
     """
 
     iterations: int = 3
     band_px: int = 8
     core_px: int = 14
     prompt_radius: int = 3
-    features: str = "rgb"
     reference_width: int = 512
 
     def __call__(self, image, coarse, prompts, region_ids, hints: RefineHints = RefineHints()):
@@ -147,7 +125,7 @@ class GrabCutRefiner:
             cv2.circle(m, (int(u), int(v)), px(self.prompt_radius), int(cv2.GC_FGD), -1)
         if not ((m == cv2.GC_BGD) | (m == cv2.GC_PR_BGD)).any():
             return coarse.copy()  # nothing to contrast against: the whole frame is foreground
-        img = _geometry_image(image, hints) if self.features == "geometry" else np.ascontiguousarray(image)
+        img = np.ascontiguousarray(image)
         bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
         try:
             cv2.grabCut(img, m, None, bgd, fgd, self.iterations, cv2.GC_INIT_WITH_MASK)

@@ -18,20 +18,13 @@ several frames. Refinement by seeded segmentation and tracking run on the host: 
 Conventions: :mod:`cm3d.ops.camera` (cam_to_world poses, forward flow ``F[v, u] = (du, dv)``).
 """
 
-from cm3d.motion.cues import flow_motion_cue, motion_cues, motion_cues_jit, sequence_motion_cues, warp_mask
-from cm3d.motion.frames import FramePrior, MotionConfig, MotionCues
-from cm3d.motion.geometry_cue import (
+# the public API of the motion cues (re-exported)
+from cm3d.motion.cues import flow_motion_cue, motion_cues, motion_cues_jit, sequence_motion_cues, warp_mask  # noqa: F401
+from cm3d.motion.frames import FramePrior, MotionConfig, MotionCues  # noqa: F401
+from cm3d.motion.geometry_cue import (  # noqa: F401
     baseline_motion_cue, ego_flow_rel, geometry_motion_cue, refine_relative_pose, relative_pose
 )
-from cm3d.motion.keypoint_cue import (
+from cm3d.motion.keypoint_cue import (  # noqa: F401
     candidate_regions, dynamic_keypoints, keypoint_displacements, robust_motion_cue, static_reference
 )
-from cm3d.motion.track_cue import moving_from_residuals, moving_tracks, segment_median, track_residuals
-
-__all__ = [
-    "FramePrior", "MotionConfig", "MotionCues", "baseline_motion_cue", "candidate_regions", "dynamic_keypoints",
-    "ego_flow_rel", "flow_motion_cue", "geometry_motion_cue", "keypoint_displacements", "motion_cues",
-    "motion_cues_jit", "moving_from_residuals", "moving_tracks", "refine_relative_pose", "relative_pose",
-    "robust_motion_cue", "segment_median", "sequence_motion_cues", "static_reference", "track_residuals",
-    "warp_mask",
-]
+from cm3d.motion.track_cue import moving_from_residuals, moving_tracks, segment_median, track_residuals  # noqa: F401

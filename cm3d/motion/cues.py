@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 
 from cm3d.motion.frames import FramePrior, MotionConfig, MotionCues
-from cm3d.motion.geometry_cue import baseline_motion_cue, geometry_motion_cue, relative_pose
+from cm3d.motion.geometry_cue import baseline_motion_cue, geometry_motion_cue
 from cm3d.motion.keypoint_cue import (
     candidate_regions, dynamic_keypoints, keypoint_displacements, robust_motion_cue, static_reference
 )
@@ -38,8 +38,7 @@ def motion_cues(prior_t: FramePrior, prior_t2: FramePrior, flow, matches,
     disp, ray, kp_ok = keypoint_displacements(prior_t, prior_t2, matches, rel, cfg)
     kp_dyn = dynamic_keypoints(disp, ray, kp_ok, cfg, static_reference(labels, matches, kp_ok, cfg))
     robust, kp_dyn_inside = robust_motion_cue(labels, matches, kp_dyn, kp_ok, cfg)
-    base_rel = rel if cfg.baseline_refined_pose else relative_pose(prior_t, prior_t2)
-    baseline = baseline_motion_cue(prior_t, prior_t2, flow, base_rel, cfg)
+    baseline = baseline_motion_cue(prior_t, prior_t2, flow, rel, cfg)
     return MotionCues(flow_mask=flow_mask, geo_mask=geo_mask, candidates=candidates, robust_mask=robust,
                       baseline_mask=baseline, residual=residual, valid=valid, geo_threshold=thr,
                       rel_pose=rel, kp_dynamic=kp_dyn_inside, kp_valid=kp_ok)

@@ -97,7 +97,6 @@ class MotionConfig:
     keep_unverified: bool = True  # regions without any keypoint keep their geometric verdict
     # MonST3R-style baseline
     baseline_threshold_px: float = 1.0
-    baseline_refined_pose: bool = True  # ego flow from the flow-aligned pose (as MonST3R's optimised poses)
     # track cue (landmark tracks over several frames, :func:`moving_tracks`)
     track_cue: bool = True
     track_iters: int = 10  # Gauss-Newton steps of each group's rigid correction
