@@ -45,15 +45,11 @@ Tables:
 - ablation at 200 maps (test split): 2D only / 2D+3D keypoints (no ICP) / 2D+3D+ICP without the
   upright pairs / full with the AND of the tuned thresholds / full with the acceptance model (the
   headline) / the previous configuration (no floor keypoints, cluster separation 2, 512 ICP points;
-  model refitted on the tuning split; q/s ratio in the same process) / thresholds + the keypoint-free fallback
-  (``MemoryConfig.fallback_yaws``; its thresholds tuned on the tuning split by :func:`tune_fallback`
-  with the keypoint thresholds fixed; off in the headline rows), and the 2D stage's recall@1/2/3 (the
-  true map among the candidates: what verification can reach);
+  model refitted on the tuning split; q/s ratio in the same process), and the 2D stage's recall@1/2/3
+  (the true map among the candidates: what verification can reach);
 - failure analysis of the test revisits at 200 maps (:func:`failure_analysis`): geometric and
   keypoint overlap with the true map under the ground-truth transform, accepted vs missed; each
-  miss's acceptance score against the unseen rooms' scores (:func:`model_failure_analysis`); for each
-  missed one the fallback's pose and colour agreement, and the colour agreement it would see from the
-  ground-truth pose (:func:`pose_colour`), against the unseen rooms';
+  miss's acceptance score against the unseen rooms' scores (:func:`model_failure_analysis`);
 - relocalisation error of accepted test revisits (rotation deg; translation of the relocalised first
   camera, metres), median and mean;
 - map update: reconstruction Accuracy / Completion (metres, against the ground-truth static points
@@ -566,67 +562,10 @@ def fit_acceptance(bank, queries, truth, unseen, cfg: memory.MemoryConfig, pose_
 
 
 def config_snippet(fields) -> str:
-    """The fitted model as MemoryConfig defaults (to paste into cm3d/memory.py)."""
+    """The fitted model as MemoryConfig defaults (to paste into cm3d/memory/config.py)."""
     fmt = lambda v: "(" + ", ".join(f"{x:g}" for x in v) + ")"  # noqa: E731
     return "\n".join(f"    {k}: {'tuple[float, ...]' if isinstance(v, tuple) else 'float'} = "
                      f"{fmt(v) if isinstance(v, tuple) else f'{v:g}'}" for k, v in fields.items())
-
-
-FALLBACK_YAWS = 4  # the keypoint-free fallback's yaw hypotheses (a box room's 4 orientations)
-FALLBACK_THRESHOLDS = ("fallback_min_fitness", "fallback_max_rmse", "fallback_min_colour")
-FALLBACK_GRID = ((0.2, 0.4, 0.6, 0.8, 0.9), (0.5, 0.55, 0.6, 0.65, 0.7), (0.4, 0.5, 0.6, 0.7, 0.8))
-FALLBACK_OPEN = dict(fallback_min_fitness=0.0, fallback_max_rmse=float("inf"), fallback_min_colour=0.0)
-
-
-def tune_fallback(bank, queries, truth, unseen, cfg: memory.MemoryConfig, pose_ok, query_ids=None):
-    """The fallback's thresholds from the tuning split only, the keypoint path's (``cfg``) fixed: as
-    :func:`tune_thresholds`, over ``FALLBACK_GRID``, keeping the settings where the fallback accepts no
-    unseen room and no revisit with a wrong pose; the median over those within 1 point of the best.
-    Returns (thresholds dict, tuning accuracy with right poses, false accepts)."""
-    import itertools
-
-    kp_ids, kp_T, _ = identify_batch(bank, queries, cfg, query_ids=query_ids)
-    out = identify_batch(bank, queries, dataclasses.replace(cfg, fallback_yaws=FALLBACK_YAWS, **FALLBACK_OPEN),
-                         full=True, query_ids=query_ids)[3]
-    fb = out.fallback
-    vs = np.asarray(bank.voxel_size)[np.maximum(np.asarray(out.map_id), 0)]
-    kp_ok, fb_ok = kp_ids >= 0, ~(kp_ids >= 0) & (np.asarray(out.map_id) >= 0)
-    feats = (np.asarray(fb.fitness), np.asarray(fb.inlier_rmse) / vs, np.asarray(fb.colour_agreement))
-    ids_fb, T_fb = np.asarray(out.map_id), np.asarray(out.verification.transform)
-    good_kp, good_fb = pose_ok(kp_ids, kp_T), pose_ok(ids_fb, T_fb)
-    rev = ~unseen
-
-    def score(th):
-        use = fb_ok & (feats[0] >= th[0]) & (feats[1] <= th[1]) & (feats[2] >= th[2])
-        right = np.where(use, good_fb, good_kp & kp_ok)
-        wrong = use & rev & ~good_fb
-        return float(np.mean(right[rev])), float(np.mean((kp_ok | use)[unseen])), int(np.sum(wrong | (use & unseen)))
-
-    res = [(th, *score(th)) for th in itertools.product(*FALLBACK_GRID)]
-    clean = [r for r in res if r[3] == 0] or [min(res, key=lambda r: r[3])]
-    best = max(r[1] for r in clean)
-    plateau = np.array([r[0] for r in clean if r[1] >= best - 0.01])
-    th = {k: round(float(np.median(plateau[:, i])), 3) for i, k in enumerate(FALLBACK_THRESHOLDS)}
-    return th, *score(tuple(th[k] for k in FALLBACK_THRESHOLDS))[:2]
-
-
-def pose_colour(maps, revisits, q, m, cfg: memory.MemoryConfig):
-    """Fitness and colour agreement (share of inliers within ``cfg.fallback_colour_difference`` RGB) of
-    revisit q against map m after the fallback's colour-gated ICP started from the *ground-truth*
-    Sim(3): what the fallback's acceptance would see if its hypotheses held the right pose."""
-    gt = maps[m].prior_from_world @ np.linalg.inv(revisits[q].prior_from_world)
-    e, me = revisits[q].entry, maps[m].entry
-    src, sv, idx = memory._even_subsample(jnp.asarray(e.points), jnp.asarray(e.point_valid, bool), cfg.icp_points)
-    vs = float(me.voxel_size)
-    pts, pv, col = memory.sort_by_cell(jnp.asarray(me.points), jnp.asarray(me.point_valid, bool),
-                                       vs * memory.GRID_CELL, jnp.asarray(me.colors, jnp.float32))
-    cell = memory.GRID_CELL * vs
-    _, _, d2, dc = memory._colour_icp(src, jnp.asarray(e.colors, jnp.float32)[idx], sv, pts, col, pv,
-                                      jnp.asarray(gt, jnp.float32), cell, cfg.icp_iterations, cfg.max_colour_difference,
-                                      cell=cell, per_cell=cfg.grid_per_cell)
-    inl = np.asarray(sv & (d2 < cell**2))
-    near_colour = inl & (np.asarray(dc) <= cfg.fallback_colour_difference)
-    return float(inl.sum() / max(int(np.sum(sv)), 1)), float(near_colour.sum() / max(int(inl.sum()), 1))
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -711,7 +650,7 @@ def main(argv=None):
     if args.fit_acceptance:
         fields = fit(big)
         if fields:
-            print("\nMemoryConfig defaults (cm3d/memory.py):\n" + config_snippet(fields))
+            print("\nMemoryConfig defaults (cm3d/memory/config.py):\n" + config_snippet(fields))
         if args.json:
             write_json(args.json, figures)
         return figures
@@ -727,15 +666,6 @@ def main(argv=None):
               f"false accepts {100 * fa_t:.1f}%")
         figures.update({f"tuned_{k}": v for k, v in th.items()})
         figures["tuning_accuracy"], figures["tuning_false_accept"] = acc_t, fa_t
-        if not quick:
-            th_fb, acc_f, fa_f = tune_fallback(build_bank(maps, big), tuning_q, truth[~test], is_unseen[~test],
-                                               dataclasses.replace(big, **th, **NO_MODEL), pose_ok, query_ids=tq)
-            cfg = dataclasses.replace(cfg, **th_fb)
-            print(f"fallback thresholds tuned on the tuning split (keypoint thresholds above fixed): "
-                  + ", ".join(f"{k}={v:g}" for k, v in th_fb.items()) + f"; tuning accuracy (right poses) "
-                  f"{100 * acc_f:.1f}%, false accepts {100 * fa_f:.1f}%")
-            figures.update({f"tuned_{k}": v for k, v in th_fb.items()})
-            figures["tuning_accuracy_fallback"], figures["tuning_false_accept_fallback"] = acc_f, fa_f
         cfg = dataclasses.replace(cfg, **fit(big))
     model = bool(cfg.accept_weights)
     test_rev = np.flatnonzero(test & ~is_unseen)
@@ -789,8 +719,7 @@ def main(argv=None):
              ("keypoints", "2D+3D keypoints (no ICP)", dict(verification="keypoints")),
              ("no_upright", "2D+3D+ICP, no upright pairs, thresholds", dict(upright_hypotheses=0, **NO_MODEL)),
              ("thresholds", "2D+3D+ICP + upright, AND of thresholds", NO_MODEL),
-             ("full", "all + acceptance model" if model else "all (AND of thresholds)", {}),
-             ("fallback", "thresholds + keypoint-free fallback", dict(fallback_yaws=FALLBACK_YAWS, **NO_MODEL))]
+             ("full", "all + acceptance model" if model else "all (AND of thresholds)", {})]
     if not model:
         modes = [m for m in modes if m[0] != "thresholds"]
     qps_ref = {}
@@ -806,11 +735,6 @@ def main(argv=None):
         figures[f"ablation_{mode}_accuracy"], figures[f"ablation_{mode}_false_accept"] = acc, fa
         figures[f"ablation_{mode}_accuracy_map"] = acc_map
         figures[f"ablation_{mode}_qps"] = qps_ref[mode] = Q / dt
-        if mode == "fallback":
-            rescued = [int(q) for q in mine if ids_m[q] == truth[q] and ids[q] != truth[q]]
-            print(f"{'':>42} (test revisits only the fallback accepts: {rescued or 'none'}; q/s ratio to the "
-                  f"thresholds row {qps_ref[mode] / qps_ref.get('thresholds', qps_ref['full']):.2f})")
-            figures["fallback_qps_ratio"] = qps_ref[mode] / qps_ref.get("thresholds", qps_ref["full"])
     if not quick:  # the previous configuration: no floor keypoints (the bank ignores the entries'), model refitted
         prev_cfg = dataclasses.replace(full["cfg"], **PREVIOUS)
         prev_maps = maps
@@ -835,26 +759,6 @@ def main(argv=None):
         figures.update(failure_analysis(maps, revisits, ids, truth, mine))
         if model:
             figures.update(model_failure_analysis(maps, revisits, full["out"], T, truth, mine, test_uns))
-        cfg_fb = dataclasses.replace(full["cfg"], fallback_yaws=FALLBACK_YAWS, **FALLBACK_OPEN, **NO_MODEL)
-        _, _, _, out_fb = identify_batch(bank, allq, cfg_fb, full=True)
-        agree_u = np.asarray(out_fb.fallback.colour_agreement)[test_uns]
-        missed = [int(q) for q in mine if ids[q] != truth[q]]
-        print(f"keypoint-free fallback on the missed test revisits (colour agreement = share of ICP inliers within "
-              f"{cfg_fb.fallback_colour_difference:g} RGB; unseen test rooms at the fallback's pose: median "
-              f"{np.median(agree_u):.2f}, max {agree_u.max():.2f}):")
-        rot_f, trans_f = pose_errors(maps, revisits + unseen, np.asarray(out_fb.map_id),
-                                     np.asarray(out_fb.verification.transform), truth)
-        gt_agree = []
-        for q in missed:
-            f_gt, a_gt = pose_colour(maps, revisits, q, int(truth[q]), cfg_fb)
-            gt_agree.append(a_gt)
-            where = (f"pose {rot_f[q]:.0f} deg / {trans_f[q]:.2f} m off" if np.isfinite(rot_f[q]) else
-                     f"checked map {int(out_fb.map_id[q])} (not the true map)")
-            print(f"  #{q}: fallback {where}, fitness "
-                  f"{float(out_fb.fallback.fitness[q]):.2f}, colour {float(out_fb.fallback.colour_agreement[q]):.2f}; "
-                  f"from the true pose: fitness {f_gt:.2f}, colour {a_gt:.2f}")
-        figures["fallback_unseen_colour_max"] = float(agree_u.max())
-        figures["fallback_missed_true_pose_colour_median"] = float(np.median(gt_agree)) if gt_agree else float("nan")
 
     posed = right_pose(maps, [revisits[q] for q in mine], ids[mine], T[mine], truth[mine])
     figures[f"accuracy_{n}_right_pose"] = float(np.mean(posed))

@@ -19,12 +19,12 @@ import pytest
 
 from cm3d import memory
 from cm3d.ops import descriptors
+from cm3d.solvers import ransac
 
 CFG = memory.MemoryConfig(max_maps=4, max_points=64, max_keyframes=3)
 # compiled once and shared: eager JAX compiles every primitive separately, which is what made this
 # file slow
 _insert = jax.jit(memory.insert_map)
-_ransac = jax.jit(memory.ransac_sim3, static_argnums=(5, 6))
 _cloud_descriptor = jax.jit(descriptors.cloud_descriptor)
 
 
@@ -234,13 +234,13 @@ def test_sequence_cloud_and_entry_from_a_render():
 
 
 def test_capacity_grows_the_voxel_instead_of_dropping_points():
-    """The capacity policy of build_entry / update_map (_downsample_to_capacity), on the render's cloud."""
+    """The capacity policy of build_entry / update_map (downsample_to_capacity), on the render's cloud."""
     from cm3d.ops.voxel import adaptive_voxel_size
 
     cloud, _ = _entry_of()
     feats = jnp.concatenate([cloud.colors.astype(jnp.float32), cloud.conf[:, None]], axis=1)
     vs0 = adaptive_voxel_size(cloud.points, cloud.valid, 60.0)
-    vox, vs = jax.jit(memory._downsample_to_capacity, static_argnums=4)(cloud.points, cloud.valid, feats, vs0, 64)
+    vox, vs = jax.jit(memory.downsample_to_capacity, static_argnums=4)(cloud.points, cloud.valid, feats, vs0, 64)
     assert 0 < int(vox.count) <= 64 and float(vs) > float(vs0)
     # the mean of all voxel points still covers the whole cloud (nothing was cut away)
     pts = np.asarray(cloud.points)[np.asarray(cloud.valid)]
@@ -343,96 +343,6 @@ def test_lift_keypoints_of_a_larger_detection_starts_with_the_smaller_lift():
     assert not np.asarray(big.valid)[S * N - 2:].any()  # the hole and the invalid ones: padding at the end
 
 
-def test_first_argmin_equals_numpy_argmin_with_ties_and_inf():
-    rng = np.random.default_rng(7)
-    x = rng.integers(0, 4, (9, 13)).astype(np.float32)  # many ties: the first index must win
-    x[2] = np.inf  # a row without any valid entry: index 0, as argmin
-    x[:, 5] = np.inf
-    f = jax.jit(memory.first_argmin, static_argnums=1)
-    for axis in (0, 1):
-        np.testing.assert_array_equal(np.asarray(f(x, axis)), np.argmin(x, axis=axis))
-    with pytest.raises(ValueError, match="pose_candidates"):
-        memory.MemoryConfig(pose_candidates=0)
-
-
-def _nms_reference(pred, score, ok, threshold, keep, share=0.5):
-    """Greedy non-maximum suppression in NumPy: the best remaining hypothesis, then drop every one that
-    predicts >= share of the scored correspondences within threshold of it."""
-    alive, picks = score > 0, []
-    for _ in range(keep):
-        if not alive.any():
-            break
-        h = int(np.argmax(np.where(alive, score, -1)))
-        picks.append(h)
-        near = ok[None] & (np.sum((pred - pred[h][None]) ** 2, -1) < threshold**2)
-        alive &= near.sum(1) < share * max(ok.sum(), 1)
-    return picks
-
-
-def test_sim3_consensus_top_keeps_the_best_distinct_poses():
-    """Correspondences from two similarities (60 for A, 35 for B) and outliers; hypotheses: noisy copies
-    of A and B and random ones. keep=3: A's pose first, then B's (not a second copy of A), each refitted to
-    its own inliers; the picks equal a NumPy greedy NMS; the first is :func:`memory.sim3_consensus`'s."""
-    from scipy.spatial.transform import Rotation
-
-    rng = np.random.default_rng(6)
-    src = rng.uniform(-1, 1, (120, 3)).astype(np.float32)
-    poses = [(1.3, Rotation.from_rotvec([0.1, 0.9, -0.2]).as_matrix(), np.array([0.5, -1.0, 0.2])),
-             (0.7, Rotation.from_rotvec([-1.2, 0.3, 0.4]).as_matrix(), np.array([-2.0, 0.5, 1.0]))]
-    dst = rng.uniform(-3, 3, (120, 3)).astype(np.float32)
-    for (s, R, t), sl in zip(poses, (slice(0, 60), slice(60, 95))):
-        dst[sl] = s * src[sl] @ R.T + t
-    hyp = []
-    for i in range(24):
-        s, R, t = poses[i % 3] if i % 3 < 2 else (rng.uniform(0.5, 2), Rotation.random(random_state=i).as_matrix(),
-                                                  rng.normal(size=3))
-        noise = Rotation.from_rotvec(rng.normal(scale=0.01, size=3)).as_matrix() if i % 3 < 2 else np.eye(3)
-        hyp.append((s, noise @ R, t + rng.normal(scale=0.005, size=3)))
-    hyps = (jnp.asarray([h[0] for h in hyp], jnp.float32), jnp.asarray(np.stack([h[1] for h in hyp]), jnp.float32),
-            jnp.asarray(np.stack([h[2] for h in hyp]), jnp.float32), jnp.ones(24, bool))
-    ok = np.ones(120, bool)
-    top = jax.jit(memory.sim3_consensus_top, static_argnums=(5, 7))
-    T, scale, inl = top(src, dst, hyps, ok, 0.05, (0.25, 4.0), None, 3)
-    inl = np.asarray(inl)
-    np.testing.assert_allclose(np.asarray(scale[:2]), [1.3, 0.7], rtol=1e-4)
-    assert inl[0, :60].all() and inl[0].sum() == 60 and inl[1, 60:95].all() and inl[1].sum() == 35
-    for k in range(2):
-        s, R, t = poses[k]
-        np.testing.assert_allclose(np.asarray(T[k]), memory._similarity(s, jnp.asarray(R), jnp.asarray(t)), atol=1e-4)
-    pred = np.stack([h[0] * src @ h[1].T + h[2] for h in hyp])
-    score = np.sum(np.sum((pred - dst[None]) ** 2, -1) < 0.05**2, 1)
-    picks, exists = jax.jit(memory.distinct_best, static_argnums=4)(pred, score, ok, 0.05, 3)
-    ref = _nms_reference(pred, score, ok, 0.05, 3)
-    assert list(np.asarray(picks)[np.asarray(exists)]) == ref and ref[:2] == [int(np.argmax(score)), ref[1]]
-    assert ref[1] % 3 == 1  # the second pick is a copy of B
-    T0, s0, i0 = jax.jit(memory.sim3_consensus, static_argnums=5)(src, dst, hyps, ok, 0.05, (0.25, 4.0))
-    np.testing.assert_allclose(np.asarray(T[0]), np.asarray(T0), atol=1e-5)  # keep=1: the best pose only
-    np.testing.assert_array_equal(inl[0], np.asarray(i0))
-
-
-def test_ransac_sim3_recovers_a_similarity_among_outliers():
-    from scipy.spatial.transform import Rotation
-
-    rng = np.random.default_rng(1)
-    src = rng.uniform(-1, 1, (200, 3)).astype(np.float32)
-    R = Rotation.from_rotvec([0.4, -1.0, 2.0]).as_matrix()
-    s, t = 1.7, np.array([0.5, -2.0, 1.0])
-    dst = (s * src @ R.T + t).astype(np.float32) + rng.normal(scale=0.005, size=(200, 3)).astype(np.float32)
-    outlier = rng.random(200) < 0.6
-    dst[outlier] = rng.uniform(-3, 3, (outlier.sum(), 3))
-    ok = np.ones(200, bool)
-    ok[-20:] = False
-    T, scale, inl = _ransac(src, dst, ok, jax.random.PRNGKey(0), 0.05, 256, (0.25, 4.0), score_ok=ok)
-    np.testing.assert_allclose(float(scale), s, rtol=1e-2)
-    np.testing.assert_allclose(np.asarray(T[:3, :3]), s * R, atol=2e-2)
-    inl = np.asarray(inl)
-    assert not np.any(inl & ~ok) and np.mean(inl[ok & ~outlier]) > 0.95 and not np.any(inl & outlier & ok & False)
-    # no usable correspondences: nothing is an inlier, nothing is NaN
-    none = np.zeros(200, bool)
-    T, scale, inl = _ransac(src, dst, none, jax.random.PRNGKey(0), 0.05, 256, (0.25, 4.0), score_ok=none)
-    assert not np.any(np.asarray(inl)) and np.all(np.isfinite(np.asarray(T)))
-
-
 def test_keypoint_clusters_and_distinct_count_match_a_loop():
     rng = np.random.default_rng(3)
     centres = rng.uniform(-5, 5, (12, 3))
@@ -443,94 +353,10 @@ def test_keypoint_clusters_and_distinct_count_match_a_loop():
         close = [j for j in range(60) if valid[j] and np.linalg.norm(pts[i] - pts[j]) < 0.2]
         assert cid[i] == (close[0] if valid[i] else i)
     masks = rng.random((4, 60)) < 0.5
-    counts = np.asarray(memory.distinct_count(jnp.asarray(masks), jnp.asarray(cid)))
+    counts = np.asarray(ransac.distinct_count(jnp.asarray(masks), jnp.asarray(cid)))
     assert list(counts) == [len(set(cid[m])) for m in masks]
     # views of one 3D point are one cluster: 12 centres at most, each valid point in one
     assert len(set(cid[valid])) <= 12
-
-
-def test_ransac_scores_on_a_looser_set_and_counts_distinct_points():
-    from scipy.spatial.transform import Rotation
-
-    rng = np.random.default_rng(4)
-    src = rng.uniform(-1, 1, (200, 3)).astype(np.float32)  # the shapes of the test above: one compilation
-    R, s, t = Rotation.from_rotvec([0.2, 0.5, -0.3]).as_matrix(), 0.8, np.array([1.0, 0.0, -1.0])
-    dst = (s * src @ R.T + t).astype(np.float32)
-    dst[100:] = rng.uniform(-3, 3, (100, 3))  # outliers
-    sample = np.zeros(200, bool)
-    sample[:8] = True  # a few safe matches to sample from ...
-    sample[100:110] = True
-    score = np.ones(200, bool)  # ... scored on all of them
-    T, scale, inl = _ransac(src, dst, sample, jax.random.PRNGKey(1), 0.02, 256, (0.25, 4.0), score_ok=score)
-    np.testing.assert_allclose(float(scale), s, rtol=1e-3)
-    assert np.asarray(inl)[:100].all() and not np.asarray(inl)[100:].any()  # inliers beyond the sampled ones
-    cluster = np.arange(200) // 2  # pairs of views of one point: half as many distinct points
-    assert int(memory.distinct_count(inl, jnp.asarray(cluster))) == 50
-
-
-@functools.partial(jax.jit, static_argnums=4)
-def _upright_fit(normals_s, up_d, src, dst, prior):
-    up_s = memory.up_axis(normals_s, jnp.ones(normals_s.shape[0], bool), prior, 35.0)
-    F_s, F_d = memory.upright_frame(up_s), memory.upright_frame(up_d)
-    ok = jnp.ones(src.shape[0], bool)
-    hyps = memory.upright_pairs(src, dst, ok, jax.random.PRNGKey(0), 256, F_s, F_d, 0.1, (0.25, 4.0))
-    none = memory.up_axis(jnp.zeros((5, 3)), jnp.ones(5, bool), prior, 35.0)  # no normals: the prior
-    return up_s, F_s, F_d, hyps, memory.sim3_consensus(src, dst, hyps, ok, 0.05, (0.25, 4.0)), none
-
-
-def test_up_axis_and_upright_pairs_recover_a_yaw_similarity():
-    """Floor/ceiling normals give each frame's up axis; then two matches fix a Sim(3) whose rotation
-    is a yaw about up, and the consensus picks it among outliers (reference: the true transform)."""
-    from scipy.spatial.transform import Rotation
-
-    rng = np.random.default_rng(7)
-    tilt_s, tilt_d = Rotation.from_rotvec([0.3, 0.1, -0.2]), Rotation.from_rotvec([-0.25, 0.05, 0.3])
-    # a box room's normals (floor/ceiling vertical, walls horizontal, noisy) seen in a tilted frame
-    world_n = np.repeat(np.eye(3)[[2, 0, 1]], 60, axis=0)
-    world_n = world_n + rng.normal(scale=0.02, size=world_n.shape)
-    world_n /= np.linalg.norm(world_n, axis=1, keepdims=True)
-    up_d = tilt_d.apply([0, 0, 1.0]).astype(np.float32)
-    # truth: dst = s R src + t with R a yaw of 1.1 rad about up (from the source's to the target's
-    # frame); any rotations whose last rows are the up axes serve as frames
-    F_s0, F_d0 = tilt_s.as_matrix().T, tilt_d.as_matrix().T
-    c, sn = np.cos(1.1), np.sin(1.1)
-    R = F_d0.T @ np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1]]) @ F_s0
-    s, t = 1.6, np.array([0.5, -1.0, 2.0])
-    src = rng.uniform(-2, 2, (80, 3)).astype(np.float32)
-    dst = (s * src @ R.T + t).astype(np.float32)
-    dst[30:] = rng.uniform(-4, 4, (50, 3))  # outliers
-    up_s, F_s, F_d, hyps, (T, scale, inl), none = _upright_fit(
-        jnp.asarray(tilt_s.apply(world_n), jnp.float32), up_d, src, dst, (0.0, 0.0, 1.0))
-    assert np.degrees(np.arccos(np.clip(np.asarray(up_s) @ tilt_s.apply([0, 0, 1.0]), -1, 1))) < 1.0
-    np.testing.assert_allclose(np.asarray(none), [0, 0, 1.0])
-    np.testing.assert_allclose(np.asarray(F_s @ F_s.T), np.eye(3), atol=1e-5)
-    np.testing.assert_allclose(np.asarray(F_s)[2], np.asarray(up_s), atol=1e-6)
-    np.testing.assert_allclose(float(scale), s, rtol=2e-3)
-    np.testing.assert_allclose(np.asarray(T[:3, :3]), s * R, atol=1e-2)
-    np.testing.assert_allclose(np.asarray(T[:3, 3]), t, atol=2e-2)
-    assert np.asarray(inl)[:30].all() and not np.asarray(inl)[30:].any()
-    # the minimal solver itself: a pair of right matches in the estimated frames gives the true
-    # transform up to the up-axis estimate (within a degree)
-    hs, hR, ht, good = (np.asarray(a) for a in hyps)
-    close = good & np.all(np.abs(hs[:, None, None] * hR - s * R) < 0.05, (1, 2)) & (np.abs(hs - s) < 0.02)
-    assert close.sum() >= 10
-
-
-def test_grid_nearest_is_exact_within_a_cell():
-    from scipy.spatial import cKDTree
-
-    rng = np.random.default_rng(0)
-    p = rng.uniform(-2, 2, (3000, 3)).astype(np.float32)
-    v = rng.random(3000) < 0.9
-    cell = 0.3
-    ps, vs = memory.sort_by_cell(jnp.asarray(p), jnp.asarray(v), cell)
-    q = rng.uniform(-2.2, 2.2, (500, 3)).astype(np.float32)
-    i, d2 = jax.jit(memory.grid_nearest, static_argnums=(4, 5))(jnp.asarray(q), ps, vs, cell, 1, 8)
-    d, _ = cKDTree(p[v]).query(q)
-    close = d < cell
-    np.testing.assert_allclose(np.sqrt(np.asarray(d2))[close], d[close], atol=1e-5)
-    np.testing.assert_allclose(np.linalg.norm(np.asarray(ps)[np.asarray(i)] - q, axis=1)[close], d[close], atol=1e-5)
-    assert np.all(np.asarray(vs)[np.asarray(i)[close]])
 
 
 def test_entry_keypoints_are_padded_and_never_nan():
@@ -551,7 +377,7 @@ def test_entry_keypoints_are_padded_and_never_nan():
 
 
 VISIT_CFG = memory.MemoryConfig(max_maps=4, max_points=1024, max_keyframes=8, max_keypoints=256,
-                                voxel_resolution=40.0, top_k=2, fallback_yaws=4)
+                                voxel_resolution=40.0, top_k=2)
 VISIT_FRAMES = 16  # every visit (stored or query) has this many frames: one render and one preparation compile
 
 
@@ -609,8 +435,7 @@ def visits():
 def test_revisit_is_recalled_verified_and_relocalised_and_new_room_rejected(visits):
     """remember (recall, verification by the acceptance model, update or insert), jitted and vmapped
     over a batch of two queries: the revisit updates map 1 with a correct Sim(3), the new room becomes
-    map 2. The keypoint-free fallback runs too: from the clouds alone it finds the revisit's Sim(3)
-    (reference: the ground truth) and its strict thresholds refuse the new room."""
+    map 2."""
     bank, maps, (rev, rev_pfw), (new, _), banks, rep = visits
     out = rep.identification
     assert list(np.asarray(out.map_id)) == [1, -1]
@@ -623,14 +448,6 @@ def test_revisit_is_recalled_verified_and_relocalised_and_new_room_rejected(visi
     np.testing.assert_allclose(s, s_gt, rtol=0.05)
     dR = (T[:3, :3] / s) @ (gt[:3, :3] / s_gt).T
     assert np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))) < 3.0
-    fb = jax.tree.map(lambda a: np.asarray(a), out.fallback)
-    Tf = fb.transform[0]
-    sf = np.cbrt(np.linalg.det(Tf[:3, :3]))
-    np.testing.assert_allclose(sf, s_gt, rtol=0.05)
-    dR = (Tf[:3, :3] / sf) @ (gt[:3, :3] / s_gt).T
-    assert np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))) < 6.0
-    assert fb.fitness[0] >= 0.8 and fb.colour_agreement[0] > fb.colour_agreement[1] + 0.4
-    assert not fb.accepted[1]  # the new room fails the fallback's strict thresholds
     # the revisit updated map 1 in place (moved by the verified transform) ...
     b0 = jax.tree.map(lambda a: a[0], banks)
     assert list(np.asarray(rep.map_id)) == [1, 2] and list(np.asarray(rep.created)) == [False, True]
@@ -692,7 +509,7 @@ def _floor_keypoints(rng, n, dim=128):
                             np.arange(n) < n - 2)
 
 
-def test_floor_keypoints_round_trip_and_version_2_files_load(tmp_path):
+def test_floor_keypoints_round_trip_and_version_2_files_with_legacy_options_load(tmp_path):
     cfg = dataclasses.replace(CFG, max_floor_keypoints=6)
     rng = np.random.default_rng(0)
     bank, m = _insert(memory.empty(cfg), _entry(0).replace(floor_keypoints=_floor_keypoints(rng, 9)))
@@ -703,9 +520,10 @@ def test_floor_keypoints_round_trip_and_version_2_files_load(tmp_path):
     jax.tree.map(np.testing.assert_array_equal, back, bank)
     # a version-2 file (before floor keypoints): loads with none
     old = memory.empty(CFG)
-    arrays = {k: v for k, v in memory._fields(old).items() if not k.startswith("floor_kp_")}
+    arrays = {k: v for k, v in memory.io._fields(old).items() if not k.startswith("floor_kp_")}
     payload = b"".join(np.ascontiguousarray(a).tobytes() for a in arrays.values())
     conf = {k: v for k, v in dataclasses.asdict(CFG).items() if k != "max_floor_keypoints"}
+    conf.update(fallback_yaws=0, fallback_grid=64, pose_candidates=1)  # options since removed: ignored on load
     header = json.dumps({"version": 2, "config": conf, "arrays": [[k, list(a.shape), a.dtype.str] for k, a in arrays.items()],
                          "sha256": hashlib.sha256(payload).hexdigest()}).encode()
     (tmp_path / "v2.cm3d").write_bytes(memory.MAGIC + struct.pack("<Q", len(header)) + header + payload)
@@ -738,7 +556,7 @@ def test_floor_keypoints_alone_recall_a_revisit_with_the_right_pose():
     pose is the ground-truth similarity between the two visits' prior frames."""
     from cm3d.ops import keypoints
 
-    cfg = dataclasses.replace(VISIT_CFG, max_floor_keypoints=256, verification="keypoints", fallback_yaws=0)
+    cfg = dataclasses.replace(VISIT_CFG, max_floor_keypoints=256, verification="keypoints")
     entries, pfws = [], []
     for visit in (0, 1):
         entry, pfw = _visit_entry(2, visit)

@@ -1,5 +1,5 @@
-"""Neighbour search on static point clouds in JAX: a cached target index, exact radius search,
-k-nearest-neighbour graph, PCA normals and the warm-started graph walk used by ICP.
+"""The ICP target index: a cached nested grid, exact radius search, the k-nearest-neighbour graph and
+the warm-started graph walk used by :mod:`cm3d.solvers.icp`.
 
 :func:`build_target_index` builds, once per target cloud (jit, fixed capacities):
 
@@ -25,23 +25,32 @@ hold), else in the coarse cells within ``1.3 d``. :func:`exact_nearest` also kee
 :class:`NearestCache` of those searches: a query that moved less than half the gap between its
 nearest and second-nearest point keeps its answer (ICP's last iterations barely move).
 
-:class:`Grid` / :func:`radius_neighbors` / :func:`grid_nearest`: a plain uniform grid (traced cell)
-for the radius neighbourhoods of FPFH features and the ICP refinement of global registration.
-
-All positions returned by the walk are *sorted* positions into ``index.points``; ``index.order``
-maps them back to the caller's point indices.
+Plain grids, radius neighbourhoods and the grid nearest-neighbour search are in :mod:`cm3d.ops.grid`,
+PCA normals in :mod:`cm3d.ops.normals` (both re-exported here). All positions returned by the walk
+are *sorted* positions into ``index.points``; ``index.order`` maps them back to the caller's indices.
 """
 
 from __future__ import annotations
 
-import itertools
-
-import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
 from jax import lax
 
+from cm3d.ops.grid import (  # noqa: F401  (Grid, build_grid, radius_neighbors: re-exported)
+    OFFSETS27,
+    Grid,
+    RadiusNeighbors,
+    _cell_ranges,
+    _cells_within,
+    _gather_candidates,
+    _range_candidates,
+    build_grid,
+    compact_apply,
+    grid_candidates,
+    radius_neighbors,
+)
+from cm3d.ops.normals import _pca_normals_soa, pca_normals  # noqa: F401  (pca_normals: re-exported)
 from cm3d.ops.voxel import (
     EMPTY,
     CellHash,
@@ -53,8 +62,6 @@ from cm3d.ops.voxel import (
 )
 
 # The 27 cell offsets, nearest first (centre, 6 faces, 12 edges, 8 corners).
-OFFSETS27 = np.array(sorted(itertools.product((-1, 0, 1), repeat=3), key=lambda o: (sum(map(abs, o)), o)),
-                     np.int32)
 _MAX_SUB = 16
 
 
@@ -116,66 +123,6 @@ class TargetIndex:
 # ----------------------------------------------------------------------------------------------
 
 
-def _smallest_eigvec(cov: jnp.ndarray) -> jnp.ndarray:
-    """Unit eigenvector of the smallest eigenvalue of symmetric PSD (..., 3, 3), closed form.
-
-    Eigenvalues by the trigonometric formula (Smith 1961) on the scaled matrix, the vector as the
-    longest cross product of two rows of ``A - lambda I`` (what Open3D's ``FastEigen3x3`` does).
-    Zero where ``cov`` is zero.
-    """
-    scale = jnp.max(jnp.abs(cov), axis=(-2, -1))
-    ok = scale > 0
-    a = cov / jnp.where(ok, scale, 1.0)[..., None, None]
-    a00, a11, a22 = a[..., 0, 0], a[..., 1, 1], a[..., 2, 2]
-    a01, a02, a12 = a[..., 0, 1], a[..., 0, 2], a[..., 1, 2]
-    q = (a00 + a11 + a22) / 3.0
-    p1 = a01**2 + a02**2 + a12**2
-    p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * p1
-    p = jnp.sqrt(jnp.maximum(p2, 0.0) / 6.0)
-    ps = jnp.where(p > 0, p, 1.0)
-    b = (a - q[..., None, None] * jnp.eye(3, dtype=a.dtype)) / ps[..., None, None]
-    r = jnp.clip(jnp.linalg.det(b) / 2.0, -1.0, 1.0)
-    phi = jnp.arccos(r) / 3.0
-    lam = q + 2.0 * p * jnp.cos(phi + 2.0 * jnp.pi / 3.0)  # smallest eigenvalue
-    m = a - lam[..., None, None] * jnp.eye(3, dtype=a.dtype)
-    r0, r1, r2 = m[..., 0, :], m[..., 1, :], m[..., 2, :]
-    c = jnp.stack([jnp.cross(r0, r1), jnp.cross(r0, r2), jnp.cross(r1, r2)], axis=-2)
-    nc = jnp.sum(c * c, axis=-1)
-    best = jnp.argmax(nc, axis=-1)
-    v = jnp.take_along_axis(c, best[..., None, None], axis=-2)[..., 0, :]
-    nv = jnp.sqrt(jnp.take_along_axis(nc, best[..., None], axis=-1)[..., 0])
-    good = ok & (nv > 1e-12) & (p > 0)
-    return jnp.where(good[..., None], v / jnp.where(good, nv, 1.0)[..., None], 0.0)
-
-
-def pca_normals(nbp: jnp.ndarray, mask: jnp.ndarray) -> jnp.ndarray:
-    """Local-PCA normals (n, 3) of neighbourhoods nbp (n, k, 3) with mask (n, k): the eigenvector
-    of the smallest eigenvalue of the (biased) covariance, as Open3D's ``estimate_normals``; unit
-    length up to sign, zero where fewer than 3 points are masked in."""
-    w = mask.astype(nbp.dtype)
-    cnt = jnp.sum(w, axis=1)
-    wsum = jnp.maximum(cnt, 1.0)
-    mu = jnp.sum(nbp * w[..., None], axis=1) / wsum[:, None]
-    xc = (nbp - mu[:, None]) * w[..., None]
-    cov = jnp.einsum("nki,nkj->nij", xc, nbp - mu[:, None]) / wsum[:, None, None]
-    return jnp.where((cnt >= 3)[:, None], _smallest_eigvec(cov), 0.0)
-
-
-def _pca_normals_soa(x, y, z, mask):
-    """:func:`pca_normals` of neighbourhoods given per coordinate, x, y, z (n, k), mask (n, k): six
-    row sums instead of a batched (3, k) x (k, 3) product (much faster on XLA CPU)."""
-    w = mask.astype(x.dtype)
-    cnt = jnp.sum(w, axis=1)
-    ws = jnp.maximum(cnt, 1.0)
-    mx, my, mz = (jnp.sum(v * w, axis=1) / ws for v in (x, y, z))
-    cx, cy, cz = (x - mx[:, None]) * w, (y - my[:, None]) * w, (z - mz[:, None]) * w
-    sxx, syy, szz = jnp.sum(cx * cx, 1), jnp.sum(cy * cy, 1), jnp.sum(cz * cz, 1)
-    sxy, sxz, syz = jnp.sum(cx * cy, 1), jnp.sum(cx * cz, 1), jnp.sum(cy * cz, 1)
-    cov = jnp.stack([jnp.stack([sxx, sxy, sxz], -1), jnp.stack([sxy, syy, syz], -1),
-                     jnp.stack([sxz, syz, szz], -1)], -2) / ws[:, None, None]
-    return jnp.where((cnt >= 3)[:, None], _smallest_eigvec(cov), 0.0)
-
-
 def _sq_dist_soa(points, cand, q):
     """Squared distances (B, C) from queries q (B, 3) to points[cand] (cand (B, C)), gathered per
     coordinate (structure of arrays: XLA CPU gathers scalars much faster than (., 3) rows)."""
@@ -188,89 +135,6 @@ def _sq_dist_soa(points, cand, q):
 def _fine_keys(index_or_origin, q, fine_cell, sub):
     fk = cell_coords(q, index_or_origin, fine_cell)
     return fk, jnp.floor_divide(fk, sub)
-
-
-def compact_apply(mask: jnp.ndarray, fn, init, chunk: int = 512):
-    """Run ``fn(idx, ok)`` on the indices where ``mask`` (n,) in chunks; write results into ``init``.
-
-    fn gets ``idx`` (chunk,) int32 (clipped) and ``ok`` (chunk,) bool and returns a pytree of
-    (chunk, ...) arrays, scattered into the matching leaves of ``init`` (n, ...) at ``idx``. The loop
-    runs ``ceil(sum(mask) / chunk)`` times (a ``while_loop``), so the cost follows the number of
-    selected items while all shapes stay fixed; with nothing selected not even the compaction runs
-    (a ``cond``). The compaction is a prefix sum and a scatter (cheaper than ``jnp.nonzero`` on
-    XLA CPU).
-    """
-    n = mask.shape[0]
-    if n == 0:
-        return init
-    chunk = max(1, min(chunk, n))
-    nch = -(-n // chunk)
-    count = jnp.sum(mask)
-
-    def run(out):
-        pos = jnp.cumsum(mask.astype(jnp.int32)) - 1
-        idx = jnp.full((nch * chunk,), n, jnp.int32).at[jnp.where(mask, pos, nch * chunk)].set(
-            jnp.arange(n, dtype=jnp.int32), mode="drop")
-
-        def cond(c):
-            return c[0] * chunk < count
-
-        def body(c):
-            it, out = c
-            sl = lax.dynamic_slice(idx, (it * chunk,), (chunk,))
-            ok = sl < n
-            vals = fn(jnp.clip(sl, 0, n - 1), ok)
-            dst = jnp.where(ok, sl, n)
-            out = jax.tree.map(lambda o, v: o.at[dst].set(v, mode="drop"), out, vals)
-            return it + 1, out
-
-        return lax.while_loop(cond, body, (jnp.int32(0), out))[1]
-
-    return lax.cond(count > 0, run, lambda out: out, init)
-
-
-def _cells_within(q, key, origin, cell, dmax):
-    """(B, 27) bool: which of the 27 cells around int keys (B, 3) of queries q (B, 3) come within
-    ``dmax`` (B,) of the query (box distance; a small margin keeps boundary cases in)."""
-    lo = origin + (key[:, None, :] + jnp.asarray(OFFSETS27)[None]).astype(q.dtype) * cell  # (B, 27, 3)
-    gap = jnp.maximum(jnp.maximum(lo - q[:, None, :], q[:, None, :] - (lo + cell)), 0.0)
-    return jnp.sum(gap * gap, axis=-1) <= (dmax[:, None] * (1 + 1e-4) + 1e-4 * cell) ** 2
-
-
-def _gather_candidates(h: CellHash, start, count, key, j, cell_mask=None, full_cells: bool = False):
-    """First ``len(j)`` points (sorted positions) of the 27 cells around int keys (B, 3) (only
-    those where ``cell_mask`` (B, 27), if given) -> (cand (B, C), valid (B, C), total (B,) number
-    of points in those cells); full_cells (with ``j = arange(C)``): also the number of leading
-    cells (OFFSETS27 order) whose points are all among the C (B,)."""
-    ranges = _cell_ranges(h, start, count, key, cell_mask)
-    return _range_candidates(ranges, j, full_cells)
-
-
-def _cell_ranges(h: CellHash, start, count, key, cell_mask=None):
-    """The point ranges of the 27 cells around int keys (B, 3) (only where ``cell_mask``):
-    (first sorted position (B, 27), count (B, 27), inclusive cumulative count (B, 27))."""
-    nb = hash_lookup(h, key[:, None, :] + jnp.asarray(OFFSETS27)[None])  # (B, 27)
-    if cell_mask is not None:
-        nb = jnp.where(cell_mask, nb, -1)
-    nbc = jnp.clip(nb, 0, h.size - 1)
-    cnt = jnp.where(nb >= 0, count[nbc], 0)
-    return start[nbc], cnt, jnp.cumsum(cnt, axis=1)
-
-
-def _range_candidates(ranges, j, full_cells: bool = False):
-    """Candidates number ``j`` (C,) of the concatenated cell ranges of :func:`_cell_ranges`, as
-    :func:`_gather_candidates` returns them."""
-    st, cnt, cum = ranges
-    total = cum[:, -1]
-    cellidx = jnp.zeros((st.shape[0], j.shape[0]), jnp.int32)
-    for c in range(26):
-        cellidx = cellidx + (cum[:, c : c + 1] <= j[None, :])
-    excl = jnp.take_along_axis(cum - cnt, cellidx, axis=1)
-    cand = jnp.take_along_axis(st, cellidx, axis=1) + j[None, :] - excl
-    valid = j[None, :] < total[:, None]
-    if full_cells:
-        return jnp.where(valid, cand, 0), valid, total, jnp.sum(cum <= j.shape[0], axis=1).astype(jnp.int32)
-    return jnp.where(valid, cand, 0), valid, total
 
 
 def _unseen_gap2(q, fk, origin, cell, nfull):
@@ -738,117 +602,6 @@ def knn_graph(index: TargetIndex):
     full = index.graph[:, -1] != jnp.arange(n, dtype=jnp.int32)  # k found (padding repeats self)
     exact = (index.valid & full & (dk <= index.rho))[inv]
     return g, exact
-
-
-@struct.dataclass
-class RadiusNeighbors:
-    """The nearest neighbours within a radius of every point of a cloud (itself excluded).
-
-    idx: (n, K) int32 input indices, ascending distance, -1 padding; dist2: (n, K) squared
-    distances (inf padding); count: (n,) neighbours found (<= K, the ``K`` nearest when more lie
-    within the radius); truncated: () int32 points whose 27 grid cells held more than
-    ``max_candidates`` points (their list may miss the farthest neighbours).
-    """
-
-    idx: jnp.ndarray
-    dist2: jnp.ndarray
-    count: jnp.ndarray
-    truncated: jnp.ndarray
-
-
-@struct.dataclass
-class Grid:
-    """A cloud bucketed by a uniform grid (cell may be traced): the hash of occupied cells, the
-    points sorted by cell (``order`` (n,) input index per sorted position) and each hash slot's
-    ``start`` / ``count`` range. points (n, 3) and valid (n,) are the caller's (input order)."""
-
-    points: jnp.ndarray
-    valid: jnp.ndarray
-    hash: CellHash
-    order: jnp.ndarray
-    start: jnp.ndarray
-    count: jnp.ndarray
-    origin: jnp.ndarray
-    cell: jnp.ndarray
-
-
-def build_grid(points, valid=None, *, cell) -> Grid:
-    """:class:`Grid` of points (n, 3) (valid: optional mask; non-finite points are dropped) with
-    cubic cells of side ``cell`` (> 0, may be traced; a bad cell leaves the grid empty)."""
-    points = jnp.asarray(points)
-    n, dtype = points.shape[0], points.dtype
-    c = jnp.asarray(cell, dtype)
-    ok_c = jnp.isfinite(c) & (c > 0)
-    ok = valid_points(points, valid) & ok_c
-    c = jnp.where(ok_c, c, 1.0)
-    lo, _ = masked_bounds(points, ok)
-    h, slot = hash_insert(cell_coords(points, lo, c), ok)
-    big = jnp.int32(np.iinfo(np.int32).max)
-    sslot, order = lax.sort((jnp.where(ok, slot, big), jnp.arange(n, dtype=jnp.int32)), num_keys=1)
-    pos = jnp.arange(n, dtype=jnp.int32)
-    dst = jnp.where(sslot < h.size, sslot, h.size)
-    start = jnp.full((h.size,), n, jnp.int32).at[dst].min(pos, mode="drop")
-    count = jnp.zeros((h.size,), jnp.int32).at[dst].add(1, mode="drop")
-    return Grid(points=points, valid=ok, hash=h, order=order, start=start, count=count, origin=lo, cell=c)
-
-
-def grid_candidates(grid: Grid, q, max_candidates: int):
-    """The first ``max_candidates`` grid points (input indices) of the 27 cells around queries
-    q (B, 3), nearest cells first -> (idx (B, C), valid (B, C), total (B,) points in the 27 cells).
-    Every point within one cell of a query is among them unless ``total > max_candidates``."""
-    keys = cell_coords(q, grid.origin, grid.cell)
-    cand, ok, total = _gather_candidates(grid.hash, grid.start, grid.count, keys,
-                                         jnp.arange(max_candidates, dtype=jnp.int32))
-    return grid.order[cand], ok, total
-
-
-def grid_nearest(grid: Grid, q, radius, max_candidates: int = 64):
-    """Nearest grid point within ``radius`` (<= the cell) of queries q (B, 3) among their
-    :func:`grid_candidates` -> (idx (B,) input index or -1, squared distance (B,) or inf). Exact
-    unless a query's 27 cells hold more than ``max_candidates`` points (then approximate)."""
-    ci, ok, _ = grid_candidates(grid, q, max_candidates)
-    d2 = jnp.where(ok, jnp.sum((grid.points[ci] - q[:, None, :]) ** 2, -1), jnp.inf)
-    a = jnp.argmin(d2, axis=1)
-    dm = jnp.take_along_axis(d2, a[:, None], 1)[:, 0]
-    inside = dm <= jnp.asarray(radius, q.dtype) ** 2
-    return jnp.where(inside, jnp.take_along_axis(ci, a[:, None], 1)[:, 0], -1), jnp.where(inside, dm, jnp.inf)
-
-
-def radius_neighbors(points, valid=None, *, radius, max_nn: int = 64, max_candidates: int = 512,
-                     chunk: int = 1024) -> RadiusNeighbors:
-    """Up to ``max_nn`` nearest neighbours within ``radius`` of each point of a cloud (n, 3), as
-    Open3D's ``KDTreeSearchParamHybrid(radius, max_nn + 1)`` without the point itself.
-
-    A :class:`Grid` of cell ``radius`` (may be traced); a point's candidates are the first
-    ``max_candidates`` points of its 27 cells, nearest cells first (both static). Invalid (masked
-    or non-finite) points have no neighbours and are nobody's neighbour; a non-positive radius
-    gives none.
-    """
-    points = jnp.asarray(points)
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"points must be (n, 3), got {points.shape}")
-    K, C = int(max_nn), int(max_candidates)
-    if not 1 <= K <= C:
-        raise ValueError(f"need 1 <= max_nn <= max_candidates, got {max_nn}, {max_candidates}")
-    n, dtype = points.shape[0], points.dtype
-    if n == 0:
-        return RadiusNeighbors(idx=jnp.zeros((0, K), jnp.int32), dist2=jnp.zeros((0, K), dtype),
-                               count=jnp.zeros((0,), jnp.int32), truncated=jnp.int32(0))
-    grid = build_grid(points, valid, cell=radius)
-    r2 = jnp.asarray(radius, dtype) ** 2
-
-    def fn(i, _ok):
-        ci, cvalid, total = grid_candidates(grid, points[i], C)
-        d2 = jnp.sum((points[ci] - points[i][:, None, :]) ** 2, axis=-1)
-        m = cvalid & (ci != i[:, None]) & (d2 <= r2)
-        neg, a = lax.top_k(jnp.where(m, -d2, -jnp.inf), K)  # top_k: fast to compile and run here
-        return jnp.take_along_axis(ci, a, 1), -neg, total > C
-
-    init = (jnp.full((n, K), -1, jnp.int32), jnp.full((n, K), jnp.inf, dtype), jnp.zeros((n,), bool))
-    idx, d2, trunc = compact_apply(grid.valid, fn, init, chunk)
-    has = jnp.isfinite(d2)
-    return RadiusNeighbors(idx=jnp.where(has, idx, -1), dist2=d2, count=jnp.sum(has, axis=1).astype(jnp.int32),
-                           truncated=jnp.sum(trunc).astype(jnp.int32))
 
 
 def estimate_normals(points, valid=None, k: int = 16, radius: float | None = None):

@@ -1,4 +1,5 @@
-"""Point-set alignment: Umeyama SE(3)/Sim(3), FPFH features and RANSAC global registration.
+"""Global registration: FPFH features, feature matching, RANSAC and ICP refinement (Umeyama fits are
+in :mod:`cm3d.solvers.umeyama`, re-exported here; the RANSAC in :mod:`cm3d.solvers.ransac`).
 
 :func:`global_registration` aligns two clouds from any relative pose, with partial overlap and
 optionally an unknown scale (all pure JAX, fixed shapes, deterministic per PRNG key):
@@ -28,51 +29,13 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from cm3d.ops.neighbors import RadiusNeighbors, build_grid, grid_nearest, pca_normals, radius_neighbors
-from cm3d.ops.voxel import adaptive_voxel_size, valid_points, voxel_downsample
-
-
-def umeyama(src, dst, weights=None, with_scale: bool = True):
-    """Least-squares similarity ``dst ≈ s R src + t`` (Umeyama 1991, reflection-safe).
-
-    src, dst: (N, 3); weights: None, or (N,) non-negative weights / boolean valid mask.
-    Returns (s scalar, R (3, 3), t (3,)); ``s = 1`` when ``with_scale`` is False. With a 0/1 mask this
-    equals evo's ``umeyama_alignment`` on the valid points. Degenerate inputs (no weight, or all
-    valid points equal) give ``s = 1`` and a finite R, never NaN; fewer than 3 non-collinear points
-    leave the rotation about the degenerate axis arbitrary.
-    """
-    src = jnp.asarray(src)
-    dst = jnp.asarray(dst, dtype=src.dtype)
-    w = jnp.ones(src.shape[:1], src.dtype) if weights is None else jnp.asarray(weights).astype(src.dtype)
-    w = w / jnp.maximum(jnp.sum(w), jnp.finfo(src.dtype).tiny)
-    mu_s = jnp.sum(w[:, None] * src, axis=0)
-    mu_d = jnp.sum(w[:, None] * dst, axis=0)
-    xs = src - mu_s
-    xd = dst - mu_d
-    var_s = jnp.sum(w * jnp.sum(xs * xs, axis=-1))
-    cov = jnp.einsum("n,ni,nj->ij", w, xd, xs)
-    U, D, Vt = jnp.linalg.svd(cov)
-    sign = jnp.where(jnp.linalg.det(U) * jnp.linalg.det(Vt) < 0, -1.0, 1.0).astype(src.dtype)
-    S = jnp.array([1.0, 1.0, 0.0], src.dtype) + jnp.array([0.0, 0.0, 1.0], src.dtype) * sign
-    R = (U * S[None, :]) @ Vt
-    if with_scale:
-        ok = var_s > 0
-        s = jnp.where(ok, jnp.sum(D * S) / jnp.where(ok, var_s, 1.0), 1.0)
-    else:
-        s = jnp.ones((), src.dtype)
-    t = mu_d - s * (R @ mu_s)
-    return s, R, t
-
-
-def similarity_matrix(s, R, t):
-    """4x4 ``[s R, t; 0, 1]`` from (s, R (3, 3), t (3,))."""
-    top = jnp.concatenate([s * R, t[:, None]], axis=1)
-    return jnp.concatenate([top, jnp.array([[0.0, 0.0, 0.0, 1.0]], R.dtype)], axis=0)
-
-
-def umeyama_transform(src, dst, weights=None, with_scale: bool = False):
-    """:func:`umeyama` as a 4x4 matrix mapping src to dst (scale folded into the rotation block)."""
-    return similarity_matrix(*umeyama(src, dst, weights, with_scale))
+from cm3d.ops import sim3
+from cm3d.ops.grid import RadiusNeighbors, grid_nearest, radius_neighbors, sort_by_cell
+from cm3d.ops.normals import pca_normals
+from cm3d.ops.voxel import adaptive_voxel_size, masked_bounds, valid_points, voxel_downsample
+from cm3d.solvers.icp import ICPOptions, point_to_plane_update
+from cm3d.solvers.ransac import ransac
+from cm3d.solvers.umeyama import similarity_matrix, umeyama, umeyama_transform  # noqa: F401  (re-exported)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -160,8 +123,8 @@ class GlobalOptions:
     edge-length check (``edge_ratio``; with_scale: edge ratios consistent and within
     ``scale_tolerance``) are fitted and scored by their correspondences within ``inlier_distance``.
     num_candidates: best distinct hypotheses (per scale) refined by point-to-plane ICP on the
-    downsampled clouds (correspondences within ``icp_distance`` among ``icp_candidates`` grid
-    points): ``screen_iterations`` steps each, then ``num_refined`` of them (over all scales) to
+    downsampled clouds (correspondences within ``icp_distance``: :func:`cm3d.ops.grid.grid_nearest`
+    looking at ``icp_per_cell`` points per cell): ``screen_iterations`` steps each, then ``num_refined`` of them (over all scales) to
     ``icp_iterations``; the best sqrt(fitness x coverage) wins. scales: source -> target scale
     hypotheses (the source is pre-scaled by each); with_scale: Sim(3) RANSAC and ICP.
     """
@@ -186,7 +149,7 @@ class GlobalOptions:
     num_refined: int = 4
     icp_iterations: int = 20
     icp_distance: float = 2.0
-    icp_candidates: int = 64
+    icp_per_cell: int = 8
     scales: tuple[float, ...] = (1.0,)
     with_scale: bool = False
     scale_tolerance: float = 1.25
@@ -287,81 +250,6 @@ def match_features(fs, fsv, ft, ftv, mutual: bool = True, min_mutual: int = 0):
     return j, ok
 
 
-def _pose_distance(A, B):
-    """(rotation-block Frobenius distance, translation distance) between 4x4 transforms."""
-    return jnp.sqrt(jnp.sum((A[..., :3, :3] - B[..., :3, :3]) ** 2, (-2, -1))), \
-        jnp.linalg.norm(A[..., :3, 3] - B[..., :3, 3], axis=-1)
-
-
-def ransac(src, dst, valid, key, options: GlobalOptions = GlobalOptions()):
-    """Robust rigid (or similarity) fits of correspondences ``src[i] -> dst[i]`` (N, 3), valid (N,).
-
-    Draws ``num_samples`` triples among the valid correspondences (the first
-    ``max_correspondences``), keeps the first
-    ``num_hypotheses`` whose edge lengths agree (and whose edges exceed ``inlier_distance``), fits
-    each by Umeyama and scores it by the correspondences within ``inlier_distance`` (in the units of
-    src/dst); the best ``num_candidates`` *distinct* hypotheses (greedy suppression of poses within
-    ~8 deg and 2 inlier distances of a better one) are re-fitted on their inliers.
-    -> (transforms (K, 4, 4) best first, inlier counts (K,)). Fewer than 3 valid correspondences
-    give identities with 0 inliers. Deterministic per key.
-    """
-    o = options
-    dtype = src.dtype
-    K, H = o.num_candidates, o.num_hypotheses
-    tau2 = jnp.asarray(o.inlier_distance, dtype) ** 2
-    # the valid correspondences first (at most max_correspondences of them, in index order)
-    n = min(src.shape[0], o.max_correspondences)
-    (vidx,) = jnp.nonzero(valid, size=n, fill_value=0)
-    nv = jnp.minimum(jnp.sum(valid), n)
-    src, dst, valid = src[vidx], dst[vidx], jnp.arange(n) < nv
-    tri = jax.random.randint(key, (o.num_samples, 3), 0, jnp.maximum(nv, 1))
-
-    def edges(x):
-        return jnp.linalg.norm(x - jnp.roll(x, 1, axis=-2), axis=-1)
-
-    ea, eb = edges(src[tri]), edges(dst[tri])
-    ratio = eb / jnp.maximum(ea, 1e-12)
-    lo, hi = (1 / o.scale_tolerance, o.scale_tolerance) if o.with_scale else (o.edge_ratio, 1 / o.edge_ratio)
-    good = (jnp.all(ea > o.inlier_distance, -1) & jnp.all(eb > o.inlier_distance, -1)
-            & (jnp.min(ratio, -1) > o.edge_ratio * jnp.max(ratio, -1))
-            & jnp.all((ratio > lo) & (ratio < hi), -1))
-    (hid,) = jnp.nonzero(good, size=H, fill_value=0)
-    hok = jnp.arange(H) < jnp.sum(good)
-    a, b = src[tri[hid]], dst[tri[hid]]
-    T = jax.vmap(lambda x, y: umeyama_transform(x, y, None, o.with_scale))(a, b)
-
-    def residual2(Tm, x, y):
-        e = x @ Tm[:3, :3].T + Tm[:3, 3] - y
-        return jnp.sum(e * e, -1)
-
-    check = jnp.all(jax.vmap(residual2)(T, a, b) < tau2, -1)
-
-    def score(Tm):
-        return jnp.sum(valid & (residual2(Tm, src, dst) < tau2))
-
-    scores = jnp.where(hok & check & (nv >= 3), jax.lax.map(score, T, batch_size=64), -1)
-
-    def pick(sc, _):  # greedy non-maximum suppression: the best remaining, then mute its neighbours
-        i = jnp.argmax(sc)
-        dr, dt = _pose_distance(T, T[i])
-        same = (dr < 0.2) & (dt < 2.0 * o.inlier_distance)
-        return jnp.where(same, -1, sc).at[i].set(-1), (i, sc[i])
-
-    _, (sel, sel_score) = jax.lax.scan(pick, scores, None, length=K)
-
-    def refine(Tm):
-        def step(Tm, _):
-            inl = valid & (residual2(Tm, src, dst) < tau2)
-            Tn = umeyama_transform(src, dst, inl, o.with_scale)
-            return jnp.where((jnp.sum(inl) >= 3) & jnp.all(jnp.isfinite(Tn)), Tn, Tm), None
-
-        return jax.lax.scan(step, Tm, None, length=3)[0]
-
-    ok = sel_score >= 3
-    Tk = jnp.where(ok[:, None, None], jax.vmap(refine)(T[sel]), jnp.eye(4, dtype=dtype))
-    return Tk, jnp.where(ok, jax.vmap(score)(Tk), 0).astype(jnp.int32)
-
-
 @struct.dataclass
 class GlobalResult:
     """transform (4, 4) source -> target, ``[s R, t]`` (target units); scale (); fitness () share of
@@ -387,11 +275,11 @@ def _refine(P, V, Ts, tf: FeatureCloud, o: GlobalOptions):
     ``screen_iterations`` steps; the ``num_refined`` best (by sqrt(fitness x coverage)) continue to
     ``icp_iterations``. -> (transforms (R, 4, 4), fitness (R,), inlier RMSE (R,) voxels, target
     coverage (R,), candidate index (R,)) of the refined ones."""
-    from cm3d.solvers.icp import ICPOptions, point_to_plane_update  # icp imports this module
-
-    grid = build_grid(tf.points, tf.valid, cell=o.icp_distance)
-    step_opts = ICPOptions(max_correspondence_distance=o.icp_distance, with_scale=o.with_scale)
+    cell = o.icp_distance
+    origin, _ = masked_bounds(tf.points, tf.valid)
     has_normal = tf.valid & (jnp.sum(tf.normals**2, -1) > 0)
+    pts, ok, normals, has_normal = sort_by_cell(tf.points, tf.valid, cell, tf.normals, has_normal, origin=origin)
+    step_opts = ICPOptions(max_correspondence_distance=o.icp_distance, with_scale=o.with_scale)
     M = tf.points.shape[0]
     nt = jnp.maximum(jnp.sum(tf.valid), 1)
 
@@ -401,12 +289,13 @@ def _refine(P, V, Ts, tf: FeatureCloud, o: GlobalOptions):
 
             def match(T):
                 q = p @ T[:3, :3].T + T[:3, 3]
-                j, d2 = grid_nearest(grid, q, o.icp_distance, o.icp_candidates)
-                return q, jnp.clip(j, 0), d2, m & (j >= 0)
+                j, d2 = grid_nearest(q, pts, ok, cell, per_cell=o.icp_per_cell, origin=origin)
+                inside = d2 <= jnp.asarray(o.icp_distance, q.dtype) ** 2
+                return q, j, jnp.where(inside, d2, jnp.inf), m & inside
 
             def step(T, _):
                 q, j, _, inl = match(T)
-                U = point_to_plane_update(q, tf.points[j], tf.normals[j], inl & has_normal[j], step_opts)
+                U = point_to_plane_update(q, pts[j], normals[j], inl & has_normal[j], step_opts)
                 return U @ T, None
 
             T, _ = jax.lax.scan(step, T, None, length=steps)
@@ -416,7 +305,7 @@ def _refine(P, V, Ts, tf: FeatureCloud, o: GlobalOptions):
             rmse = jnp.sqrt(jnp.sum(jnp.where(inl, d2, 0.0)) / jnp.maximum(cnt, 1))
             covered = jnp.zeros((M,), bool).at[jnp.where(inl, j, M)].set(True, mode="drop")
             # a Sim(3) refinement may collapse the scale onto a patch: such a candidate scores 0
-            s = jnp.cbrt(jnp.linalg.det(T[:3, :3]))
+            s = sim3.scale(T)
             sane = (s > 1.0 / o.scale_tolerance**2) & (s < o.scale_tolerance**2) & jnp.all(jnp.isfinite(T))
             return T, jnp.where(sane, fit, 0.0), rmse, jnp.where(sane, jnp.sum(covered) / nt, 0.0).astype(p.dtype)
 
@@ -493,7 +382,7 @@ def global_registration(source, target, source_valid=None, target_valid=None, ke
     ok = (v > 0) & jnp.any(V) & jnp.all(jnp.isfinite(T)) & (fit[r] > 0)
     T = jnp.where(ok, T, jnp.eye(4, dtype=dtype))
     z = jnp.zeros((), dtype)
-    return GlobalResult(transform=T, scale=jnp.where(ok, jnp.cbrt(jnp.linalg.det(A)), 1.0).astype(dtype),
+    return GlobalResult(transform=T, scale=jnp.where(ok, sim3.scale(A), 1.0).astype(dtype),
                         fitness=jnp.where(ok, fit[r], z), inlier_rmse=jnp.where(ok, rmse[r] * v, z),
                         coverage=jnp.where(ok, coverage[r], z).astype(dtype),
                         correspondences=jnp.where(ok, ncorr[b // K], 0).astype(jnp.int32),

@@ -1,5 +1,7 @@
 """ICP in JAX: point-to-point (SE(3) or Sim(3)) and point-to-plane (Gauss-Newton on SE(3) or Sim(3),
-optional robust kernel) against a cached :class:`~cm3d.ops.neighbors.TargetIndex`.
+optional robust kernel) against a cached :class:`~cm3d.ops.neighbors.TargetIndex` (:func:`icp`), or
+trimmed point-to-point Sim(3) ICP with a fixed number of iterations against a cloud in the sorted
+grid layout (:func:`icp_grid`, the memory's verification: no index to build per map).
 
 Correspondences come from the warm-started graph walk (:func:`cm3d.ops.neighbors.walk`): each
 source point is seeded once from the coarse grid, walked to a local minimum, then moved by one
@@ -41,11 +43,13 @@ from cm3d.ops.neighbors import (
     walk,
     walk_to_convergence,
 )
+from cm3d.ops import sim3
+from cm3d.ops.grid import grid_nearest
 from cm3d.ops.voxel import valid_points
-from cm3d.solvers.align import umeyama
+from cm3d.solvers.umeyama import umeyama, umeyama_transform
 
 __all__ = ["ICPOptions", "ICPResult", "TargetIndex", "build_target_index", "icp", "icp_batch",
-           "icp_coarse_to_fine", "point_to_plane_update", "stack_indices"]
+           "icp_coarse_to_fine", "icp_grid", "point_to_plane_update", "stack_indices"]
 
 _METHODS = ("point_to_point", "point_to_plane")
 _KERNELS = ("none", "huber", "cauchy", "tukey")
@@ -103,7 +107,9 @@ class ICPResult:
     """transform (4, 4) source -> target (``[s R, t]`` with scale); scale (); fitness () inliers /
     valid source points; inlier_count (); inlier_rmse () metres (0 without inliers); iterations ();
     converged () bool; exact_searches () grid searches of source points in the exact phase (all its
-    iterations together; matches certified by the graph or the cache need none)."""
+    iterations together; matches certified by the graph or the cache need none); :func:`icp_grid`
+    also returns ``matches`` (N,) the nearest target point of each source point and ``inliers`` (N,)
+    at the final transform (None from :func:`icp`)."""
 
     transform: jnp.ndarray
     scale: jnp.ndarray
@@ -113,6 +119,8 @@ class ICPResult:
     iterations: jnp.ndarray
     converged: jnp.ndarray
     exact_searches: jnp.ndarray
+    matches: jnp.ndarray | None = None
+    inliers: jnp.ndarray | None = None
 
 
 def _apply(T, p):
@@ -172,7 +180,7 @@ def point_to_plane_update(q, p, n, inl, o: ICPOptions):
 def _update_point_to_point(q, p, inl, o: ICPOptions):
     """Umeyama update (4, 4) of the current correspondences (Open3D's point-to-point estimate)."""
     s, R, t = umeyama(q, p, inl, o.with_scale)
-    U = jnp.concatenate([jnp.concatenate([s * R, t[:, None]], 1), jnp.array([[0, 0, 0, 1.0]], q.dtype)], 0)
+    U = sim3.from_parts(s, R, t)
     ok = (jnp.sum(inl) >= 3) & jnp.all(jnp.isfinite(U))
     return jnp.where(ok, U, jnp.eye(4, dtype=q.dtype))
 
@@ -262,7 +270,7 @@ def icp(source, index: TargetIndex, init=None, valid=None, options: ICPOptions =
     if o.exact_iterations == 0:  # walk only: the exact statistics at the final transform
         inl = sv & (pos >= 0)
         fit, rmse, cnt = _stats(jnp.where(inl, dd2, 0.0), inl, nvalid)
-        return ICPResult(transform=T, scale=jnp.cbrt(jnp.linalg.det(T[:3, :3])), fitness=fit,
+        return ICPResult(transform=T, scale=sim3.scale(T), fitness=fit,
                          inlier_count=cnt.astype(jnp.int32), inlier_rmse=rmse, iterations=it, converged=done,
                          exact_searches=searched)
     inl = sv & (pos >= 0)
@@ -286,7 +294,7 @@ def icp(source, index: TargetIndex, init=None, valid=None, options: ICPOptions =
     T, q, m, d2, pos, dd2, fit, rmse, searched, _, k, done_x, it = lax.while_loop(cond_x, body_x, init_x)
     inl = sv & (pos >= 0)
     fit, rmse, cnt = _stats(jnp.where(inl, dd2, 0.0), inl, nvalid)
-    scale = jnp.cbrt(jnp.linalg.det(T[:3, :3]))
+    scale = sim3.scale(T)
     return ICPResult(transform=T, scale=scale, fitness=fit, inlier_count=cnt.astype(jnp.int32), inlier_rmse=rmse,
                      iterations=it, converged=done & ((o.exact_iterations == 0) | done_x), exact_searches=searched)
 
@@ -320,3 +328,32 @@ def icp_coarse_to_fine(levels, index: TargetIndex, init=None, options: Sequence[
         res = icp_fn(pts, index, T, val, options=o)
         T = res.transform
     return res
+
+
+def icp_grid(source, valid, target, target_valid, init, *, distance, iterations: int, cell, per_cell: int = 2,
+             reach: int = 1, with_scale: bool = True) -> ICPResult:
+    """Trimmed point-to-point ICP of ``source`` (n, 3) (``valid`` (n,)) to ``target`` (P, 3) in the
+    layout of :func:`cm3d.ops.grid.sort_by_cell` at ``cell``: ``iterations`` steps, each matching every
+    source point to its :func:`~cm3d.ops.grid.grid_nearest` target point and refitting the whole
+    transform by Umeyama (Sim(3) with ``with_scale``) on the pairs closer than ``distance``; a step with
+    fewer than 3 pairs or a non-finite fit keeps the transform. Returns :class:`ICPResult` at the final
+    transform, with ``matches`` and ``inliers``.
+    """
+    src, dst = jnp.asarray(source, jnp.float32), jnp.asarray(target, jnp.float32)
+    sv, dv = jnp.asarray(valid, bool), jnp.asarray(target_valid, bool)
+
+    def nearest(T):
+        j, d2 = grid_nearest(src @ T[:3, :3].T + T[:3, 3], dst, dv, cell, reach, per_cell)
+        return j, d2, sv & (d2 < distance**2)
+
+    def step(T, _):
+        j, _, inl = nearest(T)
+        T2 = umeyama_transform(src, dst[j], inl, with_scale=with_scale)
+        return jnp.where((jnp.sum(inl) >= 3) & jnp.all(jnp.isfinite(T2)), T2, T), None
+
+    T, _ = lax.scan(step, jnp.asarray(init, jnp.float32), None, length=iterations)
+    j, d2, inl = nearest(T)
+    fit, rmse, count = _stats(d2, inl, jnp.sum(sv))
+    return ICPResult(transform=T, scale=sim3.scale(T), fitness=fit, inlier_count=count.astype(jnp.int32),
+                     inlier_rmse=rmse, iterations=jnp.int32(iterations), converged=jnp.bool_(True),
+                     exact_searches=jnp.int32(0), matches=j, inliers=inl)

@@ -1,0 +1,154 @@
+"""The memory's configuration, the acceptance model's feature names and its errors."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from cm3d.ops import descriptors
+
+DESCRIPTOR_3D_DIMS = {"handcrafted": descriptors.CLOUD_DIM, "pointnet2": 512}
+
+# the scores identify computes for its verified candidate, in the order of acceptance_features' vector (the
+# acceptance model's inputs; counts enter as log(1 + n))
+ACCEPTANCE_FEATURES = (
+    "vote_share",  # share of the query's keyframes voting for the candidate (2D recall)
+    "score_margin",  # its recall score (votes + w_cloud x 3D similarity) minus the best other candidate's
+    "cloud_similarity",  # cosine of the 3D global descriptors
+    "log_matches",  # strict keypoint matches (mutual + ratio test)
+    "log_triangle_inliers",  # distinct RANSAC inliers of the triangle hypotheses
+    "log_upright_inliers",  # ... of the upright pairs (= triangle's without them)
+    "log_pose_inliers",  # distinct RANSAC inliers of the verified pose
+    "inlier_margin",  # log(1 + keypoint inliers) minus the best other candidate's
+    "screen_overlap",  # share of the screening voxels with a colour-consistent map point, chosen pose
+    "log_icp_inliers",  # ICP inlier count
+    "fitness",  # ICP fitness
+    "rmse_voxels",  # ICP inlier RMSE in map voxels
+    "colour_agreement",  # share of ICP inliers whose colours agree
+    "scale_change",  # |log(ICP scale / RANSAC scale)|, at most 2 (a collapsed ICP is no outlier to the model)
+    "log_scale",  # |log(ICP scale)| (query -> map), at most 2
+)
+
+
+
+class MemoryFullError(RuntimeError):
+    """The bank has no free map slot (capacity policy: refuse, never evict silently)."""
+
+
+
+class MemoryFileError(ValueError):
+    """A bank file is missing, truncated, altered or of another version."""
+
+
+@dataclasses.dataclass(frozen=True)
+class MemoryConfig:
+    """Capacities (static, shape-affecting) and recall / verification settings of the memory bank.
+
+    Field groups: capacities (``max_*``, dimensions), 2D recall (``hash_*``, ``match_radius``, ``top_k``,
+    ``w_cloud``), entries (voxels, confidence, stride, normals), keypoint RANSAC (``ratio`` ...
+    ``scale_range``), ICP (``icp_*``, colours, ``grid_per_cell``), the thresholds of
+    :func:`cm3d.memory.verify` (tuned on the tuning split of ``experiments/memory_recall.py``, never its
+    test split) and the acceptance model (``accept_*``; see :data:`ACCEPTANCE_FEATURES`: when
+    ``accept_weights`` is set and verification is "full", :func:`cm3d.memory.identify` accepts on
+    ``sum(accept_weights * (features - accept_mean) / accept_scale) + accept_bias >= 0`` plus the hard
+    checks; empty: the AND of the thresholds). The ``accept_*`` defaults are
+    ``memory_recall.py --fit-acceptance`` output (docs/memory.md).
+    """
+
+    # capacities and dimensions
+    max_maps: int = 64
+    max_points: int = 8192
+    max_keyframes: int = 16
+    max_keypoints: int = 512  # 3D keypoints (local descriptors lifted to the map frame) per map
+    max_floor_keypoints: int = 0  # floor orthophoto keypoints per map (ops.keypoints.floor_features; 0: none)
+    image_dim: int = descriptors.IMAGE_DIM
+    keypoint_dim: int = 128  # local descriptor size (RootSIFT)
+    cloud_dim: int | None = None  # 3D descriptor size: set from descriptor_3d when None
+    descriptor_3d: str = "handcrafted"  # "handcrafted" (ops.descriptors) or "pointnet2" (cm3d.models.pointnet2)
+    # 2D recall
+    hash_bits: int = 64
+    hash_seed: int = 0
+    hash_radius: int = 22  # a table row is a candidate when its code is this close (Hamming)
+    match_radius: float = 0.45  # ... and its exact L2 distance to the query is below this
+    top_k: int = 3  # candidate maps passed on to verification
+    w_cloud: float = 0.5  # weight of the 3D-descriptor similarity when re-ranking
+    # entries (static points of a sequence)
+    voxel_resolution: float = 60.0  # map voxel = largest extent / this (grown while over capacity)
+    min_conf_quantile: float = 0.3  # static points: confidence above this quantile of the sequence
+    pixel_stride: int = 4  # static points: every stride-th pixel
+    normal_radius: float = 0.2  # neighbourhood cell for map normals (map units: VGGT-normalised)
+    # keypoint matching and Sim(3) RANSAC
+    ratio: float = 0.85  # keypoint matching: Lowe ratio against the best match elsewhere in 3D
+    loose_descriptor: float = 0.6  # RANSAC scoring also counts mutual matches (no ratio test) below this L2
+    cluster_separation: float = 2.0  # query keypoints closer than this (query voxels) are one 3D point
+    ransac_hypotheses: int = 256  # Sim(3) RANSAC: 3-point hypotheses per candidate
+    upright_hypotheses: int = 128  # + 2-point hypotheses with both frames' up axes known (0: off; see upright_pairs)
+    up_prior: tuple[float, float, float] = (0.0, -1.0, 0.0)  # a camera's rough up (OpenCV: -y) in its own frame
+    up_max_angle: float = 35.0  # degrees: normals this close to up_prior vote for the up axis (floor, ceiling)
+    ransac_scored: int = 128  # RANSAC scores at most this many matches (one per query keypoint cluster)
+    ransac_distance: float = 2.0  # keypoint inlier distance, in map voxels
+    scale_range: tuple[float, float] = (0.25, 4.0)  # plausible query -> map scale ratios
+    screen_points: int = 64  # query voxels that pick between the RANSAC poses by colour-consistent overlap
+    # ICP
+    icp_points: int = 256  # query voxels used by the verifying ICP (an even subsample)
+    icp_iterations: int = 5
+    grid_per_cell: int = 3  # ICP neighbour search: points looked at per grid cell (see GRID_CELL)
+    max_colour_difference: float = 40.0  # RGB (0-255) distance for a colour-consistent ICP inlier
+    # verification thresholds (tuned on the tuning split of experiments/memory_recall.py, never its test split)
+    verification: str = "full"  # "none" (2D recall only), "keypoints" (+ 3D RANSAC), "full" (+ ICP)
+    min_keypoint_inliers: int = 6  # verification: RANSAC inliers, distinct 3D points (keypoint_clusters)
+    min_inliers: int = 38  # verification: absolute number of ICP inliers
+    min_fitness: float = 0.15  # verification: share of the query's ICP points with a map point nearby
+    max_rmse: float = 0.775  # verification: ICP inlier RMSE, in map voxels
+    min_colour_agreement: float = 0.725  # verification: share of colour-consistent ICP inliers
+    # acceptance model
+    accept_weights: tuple[float, ...] = (0.30509, 0, 0, 0.53475, 0.63843, 0.52652, 0.57809, 0.37127, 0.30781, 0,
+                                         -0.23286, -0.19504, 0.62967, 0, 0)
+    accept_mean: tuple[float, ...] = (0.7018, 0, 0, 3.40222, 2.47035, 2.67332, 2.64383, 1.65895, 0.50891, 0, 0.70469,
+                                      0.61156, 0.72638, 0, 0)
+    accept_scale: tuple[float, ...] = (0.30617, 1, 1, 0.84247, 1.18459, 0.94767, 1.01166, 1.51742, 0.29364, 1, 0.25586,
+                                       0.13643, 0.2478, 1, 1)
+    accept_bias: float = 0.54522
+
+    def __post_init__(self):
+        if self.descriptor_3d not in DESCRIPTOR_3D_DIMS:
+            raise ValueError(f"MemoryConfig.descriptor_3d: unknown {self.descriptor_3d!r} ({', '.join(DESCRIPTOR_3D_DIMS)})")
+        if self.cloud_dim is None:
+            object.__setattr__(self, "cloud_dim", DESCRIPTOR_3D_DIMS[self.descriptor_3d])
+        elif self.cloud_dim != DESCRIPTOR_3D_DIMS[self.descriptor_3d]:
+            raise ValueError(f"MemoryConfig.cloud_dim: {self.descriptor_3d} descriptors have "
+                             f"{DESCRIPTOR_3D_DIMS[self.descriptor_3d]} dimensions, got {self.cloud_dim}")
+        if self.verification not in ("none", "keypoints", "full"):
+            raise ValueError(f"MemoryConfig.verification: unknown {self.verification!r} (none, keypoints, full)")
+        if self.top_k < 1 or self.max_maps < 1 or self.max_points < 1 or self.max_keyframes < 1:
+            raise ValueError("MemoryConfig: top_k, max_maps, max_points and max_keyframes must be >= 1")
+        if self.max_keypoints < 3 or self.icp_points < 3 or self.ransac_hypotheses < 1:
+            raise ValueError("MemoryConfig: max_keypoints and icp_points must be >= 3, ransac_hypotheses >= 1")
+        if self.max_floor_keypoints < 0:
+            raise ValueError(f"MemoryConfig.max_floor_keypoints: must be >= 0, got {self.max_floor_keypoints}")
+        if self.upright_hypotheses < 0:
+            raise ValueError(f"MemoryConfig.upright_hypotheses: must be >= 0, got {self.upright_hypotheses}")
+        if len(self.up_prior) != 3 or not 0 < float(np.linalg.norm(self.up_prior)) < np.inf:
+            raise ValueError(f"MemoryConfig.up_prior: need a non-zero 3-vector, got {self.up_prior}")
+        if not 0 < self.up_max_angle < 90:
+            raise ValueError(f"MemoryConfig.up_max_angle: need 0 < degrees < 90, got {self.up_max_angle}")
+        if not 0 < self.scale_range[0] < self.scale_range[1]:
+            raise ValueError(f"MemoryConfig.scale_range: need 0 < lo < hi, got {self.scale_range}")
+        if self.accept_weights or self.accept_mean or self.accept_scale:
+            n = len(ACCEPTANCE_FEATURES)
+            for name in ("accept_weights", "accept_mean", "accept_scale"):
+                v = getattr(self, name)
+                if len(v) != n or not all(np.isfinite(v)):
+                    raise ValueError(f"MemoryConfig.{name}: need {n} finite numbers (one per ACCEPTANCE_FEATURES "
+                                     f"entry), got {len(v)}: {v}")
+            if not all(x > 0 for x in self.accept_scale):
+                raise ValueError(f"MemoryConfig.accept_scale: need positive numbers, got {self.accept_scale}")
+
+
+
+def config_from_dict(fields: dict) -> MemoryConfig:
+    """A :class:`MemoryConfig` from a bank file's JSON (lists become tuples); keys of options that were
+    removed (e.g. the keypoint-free fallback's ``fallback_*``, ``pose_candidates``) are ignored."""
+    known = {f.name for f in dataclasses.fields(MemoryConfig)}
+    return MemoryConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items() if k in known})

@@ -1,0 +1,64 @@
+"""Recognition: which stored map does a query show, and where? 2D recall -> keypoint RANSAC per
+candidate -> ICP validation of the best -> the acceptance model (pure, jittable, vmappable)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from cm3d.memory.acceptance import acceptance_features, acceptance_score, model_accepts
+from cm3d.memory.bank import MemoryBank
+from cm3d.memory.config import MemoryConfig
+from cm3d.memory.entry import MapEntry
+from cm3d.memory.recall import Recall, recall
+from cm3d.memory.verify import Verification, decide, keypoint_poses, query_keypoints, refine_pose
+
+
+@struct.dataclass
+class Identification:
+    """Recall + verification of one query: the recall, keypoint checks of each candidate
+    (``candidate_inliers`` (top_k,)), the verification of the best candidate and ``map_id`` (the
+    accepted map, -1 if none)."""
+
+    recall: Recall
+    candidate_inliers: jax.Array
+    verification: Verification
+    map_id: jax.Array
+    candidate: jax.Array | None = None  # () the verified candidate (-1: none), accepted or not
+    features: jax.Array | None = None  # (len(ACCEPTANCE_FEATURES),) its scores (acceptance_features)
+    acceptance: jax.Array | None = None  # () the acceptance model's score (None without cfg.accept_weights)
+
+
+def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Identification:
+    """Which stored map does the query ``entry`` show, and where? (pure, jittable, vmappable)
+
+    2D recall (:func:`recall`) proposes ``cfg.top_k`` candidates; each is checked by keypoint
+    matching + Sim(3) RANSAC (triangle and upright-pair hypotheses); the candidate with most RANSAC
+    inliers (ties: recall order) is refined from its pose with the most colour-consistent overlap
+    and verified by ICP (:func:`verify`, per ``cfg.verification``); with ``cfg.accept_weights`` (the
+    default) and ``"full"`` verification the acceptance model decides instead of the thresholds:
+    :func:`acceptance_score` of :func:`acceptance_features` >= 0, plus the hard checks (a stored map, a
+    finite transform, a scale in ``cfg.scale_range``).
+    """
+    r = recall(bank, entry.kf_desc, entry.kf_valid, entry.cloud_desc, cfg)
+    cand = r.candidates
+    if cfg.verification == "none":
+        v = decide(bank, cand[0], jnp.eye(4), jnp.ones(()), jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), None, cfg)
+        return Identification(recall=r, candidate_inliers=jnp.zeros(cfg.top_k, jnp.int32), verification=v,
+                              map_id=jnp.where(v.accepted, cand[0], -1))
+    qk, qf, cluster, frame, sep = query_keypoints(entry, cfg)
+    keys = jax.random.split(key, cfg.top_k)
+    Ts, scales, matches, inliers = jax.vmap(
+        lambda m, k: keypoint_poses(bank, jnp.maximum(m, 0), qk, qf, cluster, frame, sep, cfg, k))(cand, keys)
+    best = jnp.where(cand >= 0, jnp.max(inliers, 1), -1)
+    b = jnp.argmax(best)
+    m = cand[b]
+    v, screen, s_kp = refine_pose(bank, m, entry, Ts[b], scales[b], matches[b], inliers[b], cfg)
+    feats = acceptance_features(bank, entry, r, best, b, inliers[b], screen, s_kp, v)
+    score = None
+    if cfg.accept_weights and cfg.verification == "full":
+        score = acceptance_score(feats, cfg)
+        v = v.replace(accepted=model_accepts(bank, m, v, score, cfg))
+    return Identification(recall=r, candidate_inliers=best, verification=v, map_id=jnp.where(v.accepted, m, -1),
+                          candidate=m, features=feats, acceptance=score)
