@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cm3d.ops.robust import masked_median
 from cm3d.ops.se3 import inverse
 from cm3d.solvers.align import umeyama  # noqa: F401  (one implementation, re-exported)
 
@@ -405,12 +406,12 @@ def depth_metrics_median(pred, gt, valid=None) -> dict:
 
     pred, gt: (S, H, W) depths; valid: optional bool mask (S, H, W). abs_rel and delta1 as in
     :func:`depth_metrics` with ``align=False`` on the scaled prediction. NaN when no pixel counts.
-    Jittable (the masked median is a NaN-median over a fixed shape).
+    Jittable (:func:`cm3d.ops.robust.masked_median` over a fixed shape).
     """
     pred = jnp.asarray(pred)
     gt = jnp.asarray(gt, dtype=pred.dtype)
     m = _depth_mask(pred, gt, valid) & (pred > 0)
-    scale = jnp.nanmedian(jnp.where(m, gt, jnp.nan)) / jnp.nanmedian(jnp.where(m, pred, jnp.nan))
+    scale = masked_median(gt.ravel(), m.ravel()) / masked_median(pred.ravel(), m.ravel())  # 0 / 0 = NaN when empty
     out = depth_metrics(scale * pred, gt, m, align=False)
     return {**out, "scale": scale}
 
