@@ -241,10 +241,6 @@ def _run_batchable(graph, init, options):
     return res, s.sys, st
 
 
-def _solve_loop(graph: FactorGraph, init: Variables, options: LMOptions) -> LMResult:
-    return _run_batchable(graph, init, options)[0]
-
-
 def _solve_unrolled(graph: FactorGraph, init: Variables, options: LMOptions) -> LMResult:
     st = _prepare(graph, init, options, differentiable=True)
 
@@ -263,7 +259,7 @@ def _solve_unrolled(graph: FactorGraph, init: Variables, options: LMOptions) -> 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
 def _solve_implicit(options, graph, init):
-    return _solve_loop(graph, init, options)
+    return _run_batchable(graph, init, options)[0]
 
 
 def _implicit_fwd(options, graph, init):
@@ -290,7 +286,7 @@ def solve(graph: FactorGraph, init: Variables, options: LMOptions = LMOptions())
         return _solve_implicit(options, graph, init)
     if options.backward == "unrolled":
         return _solve_unrolled(graph, init, options)
-    return _solve_loop(graph, init, options)
+    return _run_batchable(graph, init, options)[0]
 
 
 solve_jit = jax.jit(solve, static_argnames=("options",))
