@@ -66,6 +66,17 @@ def fit_keypoints(kp: "Keypoints | None", capacity: int, dim: int) -> Keypoints:
                      jnp.pad(jnp.asarray(kp.valid, bool), (0, pad)))
 
 
+def evenly_spread(valid, capacity: int):
+    """At most ``capacity`` of the valid items of ``valid`` (N,): all of them (in index order) when they
+    fit, else an evenly spread subset (first and last included), so coverage is kept. Returns
+    (indices (capacity,), kept (capacity,) bool)."""
+    order = jnp.argsort(~valid, stable=True)  # the valid items first, in index order
+    n = jnp.sum(valid)
+    pos = jnp.round(jnp.linspace(0.0, 1.0, capacity) * jnp.maximum(n - 1, 0)).astype(jnp.int32)
+    idx = jnp.where(n > capacity, order[pos], order[jnp.arange(capacity) % valid.shape[0]])
+    return idx, jnp.arange(capacity) < jnp.minimum(n, capacity)
+
+
 @struct.dataclass
 class MapEntry:
     """One map's contents, already at the bank's capacities (P points, K keyframes); ``keypoints`` and

@@ -9,6 +9,7 @@ from flax import struct
 
 from cm3d.memory.bank import MemoryBank, global_table
 from cm3d.memory.config import MemoryConfig
+from cm3d.memory.entry import evenly_spread
 from cm3d.ops import descriptors
 from cm3d.ops.grid import first_argmin
 
@@ -61,7 +62,6 @@ def select_keyframes(desc, valid, threshold: float, max_keyframes: int):
     When more frames qualify than the capacity holds, an evenly spaced subset of them is kept
     (first and last included), so coverage of the sequence is preserved.
     """
-    S = desc.shape[0]
 
     def body(last, x):
         d, ok = x
@@ -71,11 +71,5 @@ def select_keyframes(desc, valid, threshold: float, max_keyframes: int):
         return jnp.where(take, d, last), take
 
     _, take = jax.lax.scan(body, jnp.zeros(desc.shape[1], desc.dtype), (desc, valid))
-    n = jnp.sum(take)
-    order = jnp.argsort(~take, stable=True)  # selected frames first, in time order
-    pos = jnp.round(jnp.linspace(0.0, 1.0, max_keyframes) * jnp.maximum(n - 1, 0)).astype(jnp.int32)
-    spread = order[pos]
-    direct = order[jnp.arange(max_keyframes) % S]
-    idx = jnp.where(n > max_keyframes, spread, direct)
-    kf_valid = jnp.arange(max_keyframes) < jnp.minimum(n, max_keyframes)
+    idx, kf_valid = evenly_spread(take, max_keyframes)
     return jnp.where(kf_valid, idx, 0).astype(jnp.int32), kf_valid

@@ -9,7 +9,8 @@ from flax import struct
 
 from cm3d.memory.bank import GRID_CELL, MemoryBank, insert_map
 from cm3d.memory.config import MemoryConfig
-from cm3d.memory.entry import Keypoints, MapEntry, cloud_descriptor, downsample_to_capacity, fit_keypoints
+from cm3d.memory.entry import (Keypoints, MapEntry, cloud_descriptor, downsample_to_capacity, evenly_spread,
+                              fit_keypoints)
 from cm3d.memory.identify import Identification, identify
 from cm3d.ops import descriptors, sim3
 from cm3d.ops.grid import sort_by_cell
@@ -26,15 +27,10 @@ def relocalize(transform, cam_to_world):
 
 
 def merge_evenly(old_valid, new_valid):
-    """Which of the concatenated old and new items (old first) to keep at the old capacity ``K``: all
-    valid ones when they fit, else an evenly spread subset, so both visits stay represented. Returns
-    (indices (K,) into the concatenation, kept (K,) bool)."""
-    K = old_valid.shape[0]
-    valid = jnp.concatenate([old_valid, new_valid])
-    order = jnp.argsort(~valid, stable=True)
-    n = jnp.sum(valid)
-    pos = jnp.round(jnp.linspace(0.0, 1.0, K) * jnp.maximum(n - 1, 0)).astype(jnp.int32)
-    return jnp.where(n > K, order[pos], order[:K]), jnp.arange(K) < jnp.minimum(n, K)
+    """Which of the concatenated old and new items (old first) to keep at the old capacity: all valid
+    ones when they fit, else an evenly spread subset, so both visits stay represented
+    (:func:`~cm3d.memory.entry.evenly_spread`): (indices into the concatenation, kept)."""
+    return evenly_spread(jnp.concatenate([old_valid, new_valid]), old_valid.shape[0])
 
 
 def update_map(bank: MemoryBank, map_id, entry: MapEntry, transform, cfg: MemoryConfig) -> MemoryBank:
