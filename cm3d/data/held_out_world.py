@@ -4,8 +4,8 @@ No threshold, default or design choice of cm3d may be fitted, chosen or "sanity 
 looks right" on this world: it exists to measure how cm3d behaves on a world it was not built
 against (``experiments/held_out_world.py``). It shares nothing with :mod:`cm3d.data.synthetic`
 except the prior model (:mod:`cm3d.data.priors`, the one implementation) and the
-:class:`~cm3d.data.Sequence` / :class:`~cm3d.data.GroundTruth` containers, and it was written
-without reading synthetic.py's geometry, textures or paths. It is deliberately different:
+:class:`~cm3d.data.Sequence` / :class:`~cm3d.data.GroundTruth` containers (no code, no
+primitive, texture or path of synthetic.py is reused). It is deliberately different:
 
 - **enclosure**: a convex polygonal hall (5-7 vertical walls of random length, floor, ceiling)
   instead of a box room;
