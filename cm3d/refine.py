@@ -1,16 +1,9 @@
 """Host-side mask refinement (seeded segmentation) and mask tracking over a sequence.
 
-The paper prompts SAM2 with points sampled in the dynamic regions and lets it segment and track
-the objects. SAM2's weights cannot be downloaded here, so the same interface is served by real
-seeded segmentations: OpenCV GrabCut (default) or a scikit-image marker watershed. A SAM2-like
-model plugs in as any callable with the :class:`MaskRefiner` signature.
-
-Tracking (:func:`refine_and_track`): the refined mask of frame t-1 is forward-warped to frame t
-with the flow (:func:`cm3d.motion.warp_mask`), kept where frame t's candidate regions still show
-motion, and used as the seed of frame t's refinement; detection (the keypoint-verified robust cue)
-runs again only on frames where the geometry cue shows a candidate region the tracked mask does not
-cover (new motion), and on the first frame. Everything here is numpy / OpenCV / scikit-image,
-outside jit.
+The paper prompts SAM2 in the dynamic regions; its weights are not available here, so OpenCV
+GrabCut (default) or a scikit-image watershed serve the same :class:`MaskRefiner` interface.
+:func:`refine_and_track` warps frame t-1's mask to t with the flow as the next seed and re-runs
+detection only on the first frame and on new motion. NumPy / OpenCV, outside jit.
 """
 
 from __future__ import annotations
@@ -60,11 +53,9 @@ def _erode(mask, r):
 
 
 def sample_prompts(mask: np.ndarray, per_region: int = 8, seed: int = 0, min_area: int = 1):
-    """Prompt points sampled uniformly inside each 8-connected region of ``mask``.
-
-    Points come from the region's interior (eroded by 2 px when that leaves anything), at most
-    ``per_region`` per region, without replacement. Returns (points (P, 2) int32 ``(u, v)``,
-    region ids (P,) int32, label image (H, W) int32 with 0 = background).
+    """Prompt points sampled uniformly inside each 8-connected region of ``mask`` (eroded by 2 px when
+    possible), at most ``per_region`` each. Returns (points (P, 2) int32 ``(u, v)``, region ids (P,),
+    label image (H, W) int32, 0 = background).
     """
     import cv2
 
@@ -96,11 +87,9 @@ def _px(value: int, width: int, reference: int) -> int:
 class GrabCutRefiner:
     """OpenCV GrabCut seeded by the coarse mask and the prompts.
 
-    Seeds: definite foreground in disks of ``prompt_radius`` around the prompts and in the coarse
-    mask eroded by ``core_px`` (so a halo of a few pixels around the coarse mask is decided by the
-    colour models); probable foreground in the rest of the coarse mask; probable background in a
-    ``band_px`` ring around it; definite background elsewhere. Pixel sizes are for images
-    ``reference_width`` wide and scale with the width. GrabCut segments the colour image.
+    Definite foreground around the prompts and in the coarse mask eroded by ``core_px``; probable
+    foreground in the rest of it; probable background in a ``band_px`` ring; definite background
+    elsewhere. Pixel sizes are for ``reference_width`` wide images and scale with the width.
     """
 
     iterations: int = 3
@@ -219,11 +208,9 @@ def refine_and_track(images: np.ndarray, flows: np.ndarray, candidates: np.ndarr
                      cfg: TrackConfig = TrackConfig()):
     """Refined and tracked dynamic masks of frames 0..T-1 (T = len(flows)).
 
-    images (>= T, H, W, 3) uint8; flows (T, H, W, 2) forward flow t -> t+1; candidates (T, H, W)
-    bool geometric candidate regions; ``detect(t)`` returns the detection mask (H, W) of frame t
-    (the keypoint-verified robust cue; called only on frames that need it, so its keypoints can be
-    computed lazily); depth / residual (T, H, W) optional hints for the refiner.
-    Returns (masks (T, H, W) bool, detected (T,) bool: frames where detection ran).
+    images (>= T, H, W, 3) uint8; flows (T, H, W, 2) t -> t+1; candidates (T, H, W) bool; ``detect(t)``
+    returns frame t's detection mask (called only when needed); depth / residual: optional hints.
+    Returns (masks (T, H, W) bool, detected (T,) bool).
     """
     from cm3d.motion import warp_mask
 

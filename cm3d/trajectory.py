@@ -1,22 +1,10 @@
 """Landmarks, tracks and association for the factor graph; trajectory refinement (paper, Sec. 3.4).
 
-Landmarks come only from static (``1 − M_dyn``), high-confidence pixels with valid prior depth:
-one candidate per ``cell x cell`` block of each keyframe (:func:`select_landmark_pixels`). Each is
-followed through the next frames by chaining the optical flow (:func:`chain_tracks`; forward-
-backward consistency when a backward flow is given) or keypoint matches
-(:func:`chain_keypoint_tracks`), and lifted to 3D with the prior depth and pose of its keyframe
-(:func:`lift_landmarks`).
-Candidates are associated with a bank of known landmarks (the memory) when their 3D distance is
-below the adaptive threshold ``τ_dist = max(τ_min, d_scene · α)`` (:func:`associate_landmarks`);
-associated landmarks take the stored 3D position and are flagged as memory landmarks, whose
-projection covariance the graph scales by ``α_mem`` (:func:`cm3d.solvers.factors.build_graph`).
-
-:func:`refine_trajectory` builds the paper's graph (prior on the first pose, motion factors from
-the prior's relative poses, Huber projection factors), solves it with the Schur-complement LM,
-rejects outliers with the adaptive threshold, solves again and re-orthonormalises the rotations.
-
-All functions are pure JAX with fixed shapes (padded to capacities with validity masks), so a
-sequence of a given size compiles once. Shapes: ``S`` frames of ``H x W``; poses cam_to_world.
+Landmarks: one static, confident pixel per cell of each keyframe (:func:`select_landmark_pixels`),
+tracked by chained flow or keypoint matches (:func:`chain_tracks`, :func:`chain_keypoint_tracks`),
+lifted with the prior depth (:func:`lift_landmarks`). :func:`refine_trajectory` solves the paper's
+graph, rejects outliers, solves again, re-orthonormalises and gates the result. Pure JAX with
+fixed shapes (padded, masked). ``S`` frames of ``H x W``; poses cam_to_world.
 """
 
 from __future__ import annotations
@@ -139,11 +127,8 @@ def eligible_pixels(depth, conf, static, cfg: TrackConfig = TrackConfig()):
 
 
 def select_landmark_pixels(depth, conf, static, cfg: TrackConfig = TrackConfig()):
-    """Landmark candidates of one frame: the most confident eligible pixel of every cell.
-
-    depth, conf: (H, W) prior depth and confidence; static: (H, W) bool (``1 − M_dyn``).
-    Eligible: see :func:`eligible_pixels`. Returns uv (C, 2) float pixel centres and valid (C,)
-    bool, ``C = (H // cell) * (W // cell)``.
+    """Landmark candidates of one frame: the most confident eligible pixel (:func:`eligible_pixels`) of
+    every cell. depth, conf, static: (H, W). Returns uv (C, 2), valid (C,), ``C = (H // cell) * (W // cell)``.
     """
     H, W = depth.shape
     c = cfg.cell
@@ -170,10 +155,7 @@ def keypoint_seeds(uv, valid, depth, conf, static, cfg: TrackConfig = TrackConfi
 
 
 def bilinear(stack, idx, uv):
-    """Sample images ``stack[idx]`` (stack (S, H, W, C)) at pixels uv (L, 2); idx (L,) int.
-
-    Bilinear, clamped to the image; gathers only the 4 neighbours of each point.
-    """
+    """Bilinear samples of ``stack[idx]`` (stack (S, H, W, C), idx (L,)) at pixels uv (L, 2), clamped."""
     H, W = stack.shape[1:3]
     x = jnp.clip(uv[:, 0], 0.0, W - 1.0)
     y = jnp.clip(uv[:, 1], 0.0, H - 1.0)
@@ -231,11 +213,9 @@ def chain_keypoint_tracks(uv0, uv1, mvalid, static, seeds_uv, seeds_valid, seed_
                           cfg: TrackConfig = TrackConfig(), radius: float = 1.0) -> Tracks:
     """Tracks from chained keypoint matches (:func:`cm3d.ops.keypoints.sequence_matches`).
 
-    uv0, uv1: (S−1, N, 2) matched keypoints of consecutive frames (pair t: frame t to t+1),
-    mvalid: (S−1, N); seeds as in :func:`chain_tracks` (keypoints of the keyframes, e.g. the
-    ``uv0`` of their pair filtered by :func:`keypoint_seeds`). At each step a track continues with
-    the match whose ``uv0`` is nearest to its position, within ``radius`` px (the keypoint detected
-    again); it stops when there is none, on a dynamic pixel, out of the image or at the last frame.
+    uv0, uv1: (S−1, N, 2) matches of frames t -> t+1, mvalid: (S−1, N); seeds as :func:`chain_tracks`.
+    A track continues with the match whose ``uv0`` is within ``radius`` px of its position; it stops
+    as :func:`chain_tracks` does.
     """
     S, H, W = static.shape
     F_, C = seeds_valid.shape
@@ -310,10 +290,7 @@ def associate_landmarks(points, valid, bank, bank_valid, d_scene, cfg: Associati
 
 
 def add_memory_landmarks(points, valid, bank, bank_valid, d_scene, cfg: AssociationConfig = AssociationConfig()):
-    """Associate candidates with the memory bank; matched ones take the stored 3D position.
-
-    Returns (points (L, 3), memory flags (L,) bool).
-    """
+    """Associate candidates with the memory bank; matched ones take the stored 3D position -> (points, memory flags)."""
     idx, matched, _ = associate_landmarks(points, valid, bank, bank_valid, d_scene, cfg)
     return jnp.where(matched[:, None], bank[idx], points), matched
 
@@ -347,11 +324,10 @@ def associate_surface(points, valid, mem: MemorySurface, cfg: AssociationConfig 
 
 def align_to_surface(points, valid, mem: MemorySurface, cfg: AssociationConfig = AssociationConfig(),
                      iterations: int = 3):
-    """The similarity (4, 4) that puts landmarks (L, 3) on the remembered surface: point-to-plane
-    Gauss-Newton over the landmarks within ``max(τ_dist, radius_voxels · voxel)`` of a map point
-    (re-associated every iteration, Cauchy-weighted at ``τ_dist``; identity with fewer than 12).
-    A recalled map is placed by the verification's Sim(3), estimated from the window's *prior*-posed
-    cloud; this re-fit to the refined landmarks removes the prior's share of that placement."""
+    """The similarity (4, 4) that puts landmarks (L, 3) on the remembered surface (point-to-plane
+    Gauss-Newton, Cauchy-weighted at ``τ_dist``, re-associated each iteration; identity below 12).
+    Why: a recalled map is placed from the window's prior-posed cloud; this removes the prior's share.
+    """
     tau = association_threshold(mem.d_scene, cfg)
     radius = jnp.maximum(tau, cfg.radius_voxels * mem.voxel)
     c = jnp.sum(jnp.where(valid[:, None], points, 0.0), 0) / jnp.maximum(jnp.sum(valid), 1)
@@ -433,19 +409,13 @@ def refine_trajectory(prior_poses, intrinsics, points, obs: Observations,
                       assoc: AssociationConfig = AssociationConfig(), realign=False) -> Refinement:
     """The paper's factor-graph refinement of the prior poses (S, 4, 4) with landmarks (L, 3).
 
-    Solve, reject outliers with the adaptive threshold, solve again from the previous optimum
-    (``cfg.rounds`` solves), re-orthonormalise the rotations by SVD; then (``cfg.gate``) keep the
-    prior poses unless the refinement is statistically significant (see :class:`RefineConfig`).
-    The solves run as stages of one ``lax.scan`` (one solver in the compiled program).
-
-    ``memory``: a remembered surface in the poses' frame. With the outlier rejection after the
-    first solve, the landmarks (now consistent with each other, not with the prior's noise) are
-    associated with it (:func:`memory_point_prior`): the later solves hold them on the remembered
-    surface (point-to-plane priors; their projections weighted up by ``α_mem``), which ties the
-    window's poses to the map (free landmarks that merely start at a remembered position do not).
-    ``realign`` (bool array): first re-fit the surface's placement to the landmarks
-    (:func:`align_to_surface`; for a map recalled by this window, placed from prior-posed geometry);
-    the correction is ``Refinement.alignment`` (identity otherwise).
+    ``cfg.rounds`` solves with outlier rejection between them, SVD re-orthonormalisation, then
+    (``cfg.gate``) the prior poses are kept unless the refinement is significant (:class:`RefineConfig`).
+    The solves are stages of one ``lax.scan`` (one solver in the compiled program).
+    ``memory``: a remembered surface in the poses' frame; after the first solve, landmarks on it get
+    point-to-plane priors (:func:`memory_point_prior`), which tie the window's poses to the map.
+    ``realign``: first re-fit the surface's placement to the landmarks (:func:`align_to_surface`),
+    returned as ``Refinement.alignment``.
     """
     graph = factors.build_graph(prior_poses, intrinsics, obs.pose_idx, obs.point_idx, obs.uv,
                                 obs.valid, obs.memory, pose_valid, cfg.graph)

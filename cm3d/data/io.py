@@ -1,31 +1,10 @@
 """Sequence files: one ``.npz`` per video, a superset of VGGT's saved predictions dict.
 
-``S`` frames of ``H x W`` pixels. Files are never pickled (read with ``allow_pickle=False``) and are
-validated on save (a bad sequence is never written) and on load.
-
-| key | shape | dtype | meaning | required? |
-|---|---|---|---|---|
-| `images` | (S, H, W, 3) | uint8 | RGB frames; load also takes float in [0, 1] as (S, 3, H, W) (VGGT) or (S, H, W, 3) | yes |
-| `depth` | (S, H, W) | float32 | prior depth, camera z in prior units; load also takes (S, H, W, 1) | yes |
-| `depth_conf` | (S, H, W) | float32 | prior depth confidence, >= 0, larger is better; load also takes (S, H, W, 1) | no: ones |
-| `extrinsic` | (S, 3, 4) | float64 | prior world-to-camera (R, t), OpenCV axes; load also takes (S, 4, 4) | yes, or `cam_to_world` |
-| `cam_to_world` | (S, 4, 4) | float64 | prior poses, inverse of `extrinsic`; written for exact round trips, preferred on load, must agree with `extrinsic` | yes, or `extrinsic` |
-| `intrinsic` | (S, 3, 3) | float64 | pinhole K in pixels | yes |
-| `timestamps` | (S,) | float64 | seconds (or frame index) | no: 0, 1, ..., S-1 |
-| `world_points` | (S, H, W, 3) | float32 | prior point map | no |
-| `gt_cam_to_world` | (S, 4, 4) | float64 | ground-truth poses, metric world | for ground truth: this or `gt_extrinsic` |
-| `gt_extrinsic` | (S, 3, 4) or (S, 4, 4) | float64 | ground-truth world-to-camera (read only, never written) | for ground truth: this or `gt_cam_to_world` |
-| `gt_depth` | (S, H, W) | float32 | ground-truth depth, 0 where nothing was hit | for ground truth |
-| `gt_intrinsic` | (S, 3, 3) | float64 | ground-truth K | no: `intrinsic` |
-| `gt_dynamic_mask` | (S, H, W) | bool | pixels on moving objects | no |
-| `gt_flow` | (S-1, H, W, 2) | float32 | forward flow from frame t to t+1 | no |
-| `meta_json` | () | unicode | JSON object, becomes `Sequence.meta` | no: {} |
-
-On load, a leading batch axis of size 1 on every array (``[1, S, ...]``, detected from ``intrinsic``
-being 4-D) is dropped, and keys not in the table (``pose_enc``, ``images_path``,
-``world_points_conf``, ...) are ignored. Float images are converted by ``round(clip(x, 0, 1) * 255)``.
-Images and depth must have the same H x W (VGGT resizes its input): nothing is resized, a mismatch is
-an error. Every problem raises :class:`SequenceFormatError` naming the file, the key and the problem.
+``S`` frames of ``H x W``. The keys, shapes, dtypes and load rules are in docs/sequence_format.md:
+required ``images``, ``depth``, ``intrinsic`` and ``extrinsic`` or ``cam_to_world``; optional
+confidence, timestamps, point map and ground truth (``gt_*``), ``meta_json``. Never pickled;
+validated on save and on load (a leading batch axis of 1 is dropped, unknown keys ignored, nothing
+resized); every problem raises :class:`SequenceFormatError` naming the file, the key and the problem.
 """
 
 from __future__ import annotations

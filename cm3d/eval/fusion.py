@@ -1,33 +1,14 @@
 """Multi-view depth fusion: every frame's depth re-estimated from its neighbours' depths and poses.
 
-The video-depth evaluation (the paper's Table 1) asks whether the refined poses give a better depth
-than the foundation model's single-frame prior. This module answers it with a per-pixel multi-view
-estimate in the style of the geometric-consistency fusion of MVS pipelines: for a reference frame
-``t`` and each of its neighbour frames ``k``
-
-1. lift every reference pixel ``p`` with the reference's current depth estimate and project it into
-   ``k`` (pixel ``p_k``, depth ``z_k``);
-2. sample ``k``'s depth at ``p_k`` (bilinear in *inverse* depth, exact on planes; refused when a
-   corner is invalid or the four corners straddle a depth edge: spread > ``edge_tol``);
+For the video-depth evaluation (Table 1). For a reference frame ``t`` and each neighbour ``k``:
+1. lift every reference pixel ``p`` with the current estimate ``d_t`` and project it into ``k``;
+2. sample ``k``'s depth there (bilinear in inverse depth; refused across a depth edge, ``edge_tol``);
 3. lift that sample in ``k`` and bring it back into ``t``: depth ``z'`` at pixel ``p'``;
-4. accept it when it sees the same surface: ``|z' - d_t| <= rel_tol d_t`` (the occlusion test
-   against the reference's estimate ``d_t``; an occluder or a surface hidden in ``t`` fails it)
-   and ``|p' - p| <= px_tol``.
-
-The fused depth is the (confidence-weighted) mean of the reference's own depth and the accepted
-``z'`` (the gates above make it robust; a median of the candidates measured slightly worse on the
-synthetic videos); pixels no neighbour agrees with keep their own depth. ``iterations`` > 1
-repeats steps 1-4 with the fused estimate as ``d_t`` (the candidates are always the measured
-depths, so every frame's noise enters once).
-
-Poses are ``cam_to_world`` 4x4 and pixels follow :mod:`cm3d.ops.camera` (pixel ``(u, v)`` =
-column ``u``, row ``v``, integer coordinates at pixel centres; depth is camera ``z``). Everything is
-pure JAX with fixed shapes: a frame's neighbours are a fixed-size row of frame indices padded
-with ``-1`` (:func:`neighbour_frames` builds them on the host); frames are processed with
-``lax.map`` in batches of ``batch_size`` (a ``vmap`` inside each batch) and a frame's neighbours
-are added one at a time (``fori_loop``), so memory is a few images per frame of a batch. The
-geometry is written per coordinate (no length-3 matmuls: XLA fuses it into one loop on CPU):
-40 frames at 384x512, 8 neighbours, 2 passes take ~3 s of one CPU core.
+4. accept it when ``|z' - d_t| <= rel_tol d_t`` (occlusion test) and ``|p' - p| <= px_tol``.
+The fused depth is the confidence-weighted mean of the own depth and the accepted ``z'``; pixels no
+neighbour agrees with keep their own depth. ``iterations`` > 1 repeats with the fused ``d_t``.
+Poses cam_to_world, pixels as :mod:`cm3d.ops.camera`. Neighbours are a fixed-size row of frame
+indices padded with ``-1`` (:func:`neighbour_frames`); frames run in ``lax.map`` batches.
 """
 
 from __future__ import annotations
@@ -146,12 +127,11 @@ def reproject_neighbour(ref_est, ref_pose, ref_K, src_depth, src_valid, src_weig
 
 def fuse_frame(depth, valid, weight, pose, K, nb_depth, nb_valid, nb_weight, nb_pose, nb_K, nb_ok,
                cfg: FusionConfig = FusionConfig()):
-    """Fused depth of one frame from M neighbours (vmappable; :func:`fuse_depths` maps it over a video).
+    """Fused depth of one frame from M neighbours (vmappable); returns (fused (H, W), support (H, W) int32).
 
-    depth (H, W), valid (H, W) bool, weight (H, W) or None (1): the frame's measured depth, usable
-    pixels, confidence;
-    pose (4, 4) cam_to_world; K (3, 3); nb_*: the same for the neighbours, stacked (M, ...);
-    nb_ok (M,) bool: padding rows False. Returns (fused (H, W), support (H, W) int32)."""
+    depth, valid, weight (H, W): measured depth, usable pixels, confidence (None: 1); pose (4, 4)
+    cam_to_world; K (3, 3); nb_*: the same for the neighbours (M, ...); nb_ok (M,) bool: padding False.
+    """
     own = valid & (depth > 0)
     d0 = jnp.where(own, depth, 0.0)
     weight = jnp.ones_like(depth) if weight is None else weight
@@ -228,8 +208,8 @@ def fuse_depths(depth, valid, cam_to_world, K, neighbours, weights=None, *, cfg:
 def neighbour_frames(num_frames: int, offsets=(-4, -3, -2, -1, 1, 2, 3, 4)):
     """Host helper: (S, M) int32 neighbour frame indices ``t + o`` for the ``offsets`` (M of them);
     an offset that leaves the video is reflected (``t - o``), and a frame that would repeat or
-    still lie outside is padding (-1). Frames of a video far apart in time rarely overlap, so the
-    neighbours are the nearest in time; spreading the offsets widens the baselines."""
+    still lie outside is padding (-1).
+    """
     import numpy as np
 
     offsets = [int(o) for o in offsets]

@@ -1,20 +1,11 @@
-"""Evaluation metrics: trajectories (ATE/RPE as evo computes them), depth, dynamic masks, reconstruction.
+"""Evaluation metrics: trajectories (ATE/RPE as evo 1.38.1 computes them), depth, dynamic masks, reconstruction.
 
-Pose, depth and mask metrics are written in ``jax.numpy``: jittable, vmappable and differentiable,
-with fixed shapes (invalid frames/pixels are masked, never dropped) and no Python branching on traced
-values. Their dtype follows the inputs; run them under ``with jax.enable_x64(True):`` for float64.
-``associate``, ``evaluate_trajectories`` and ``reconstruction_metrics`` run on the host.
-
-Poses are cam_to_world 4x4 (see :mod:`cm3d.ops.se3`); translations in metres, angles in degrees.
-
-Matching evo 1.38.1 (``evo_ape tum GT EST -a|-as``, ``evo_rpe tum GT EST -r trans_part|angle_deg
--d 1 -u f -as --all_pairs``):
-
-* alignment is Umeyama on the positions (est -> gt), applied as ``t <- s R t + t0``, ``R_i <- R R_i``;
-* ATE is the RMSE of ``|t_est_aligned - t_gt|``;
-* RPE uses the pairs ``(i, i + delta)`` for every ``i`` (``--all_pairs``) of the *associated*
-  trajectories, ``E = (G_i^-1 G_j)^-1 (P_i^-1 P_j)`` on the aligned estimate (so with ``-as`` the
-  estimate's translations are scaled first); trans = ``|t(E)|``, rot = angle of ``R(E)``.
+Pose, depth and mask metrics are jittable ``jax.numpy`` with fixed shapes (invalid frames/pixels are
+masked); their dtype follows the inputs. ``associate``, ``evaluate_trajectories`` and
+``reconstruction_metrics`` run on the host. Poses cam_to_world 4x4; metres and degrees.
+Alignment is Umeyama on the positions (est -> gt); ATE is the RMSE of the aligned positions; RPE
+uses all pairs ``(i, i + delta)`` with ``E = (G_i^-1 G_j)^-1 (P_i^-1 P_j)`` on the aligned estimate
+(``evo_ape tum -a|-as``, ``evo_rpe -r trans_part|angle_deg -d 1 -u f -as --all_pairs``).
 """
 
 from __future__ import annotations
@@ -198,11 +189,8 @@ def _match_linear(short: np.ndarray, long: np.ndarray, max_diff: float):
 def associate(ts_ref, ts_est, max_diff: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
     """Match timestamps (s) as ``evo.core.sync.associate_trajectories`` (nearest time) -> (idx_ref, idx_est).
 
-    As evo: each stamp of the trajectory with fewer poses (the estimate when lengths are equal) is
-    matched to its nearest stamp of the other within ``max_diff`` (binary search when the other is
-    sorted, ties and duplicates resolved exactly as evo does; a first-argmin linear search
-    otherwise). Pairs are ordered by the shorter trajectory's index; an index of the longer one may
-    repeat. Returns int64 arrays (possibly empty).
+    Each stamp of the shorter trajectory is matched to its nearest stamp of the other within
+    ``max_diff``, ties resolved as evo does. Returns int64 arrays (possibly empty).
     """
     ref = np.asarray(ts_ref, dtype=np.float64).ravel()
     est = np.asarray(ts_est, dtype=np.float64).ravel()
@@ -293,11 +281,9 @@ def align_depth_scale_shift(pred, gt, valid=None):
 def depth_metrics(pred, gt, valid=None, align: bool = True) -> dict:
     """Depth errors after per-sequence scale-and-shift alignment -> dict(abs_rel, delta1) scalars.
 
-    pred, gt: (S, H, W) depths in metres; valid: optional bool mask (S, H, W). Pixels count when
-    valid, ``gt > 0`` and finite. ``abs_rel = mean |a - g| / g`` with ``a = scale * pred + shift``
-    (``a = pred`` when ``align`` is False); ``delta1`` = fraction with ``max(a/g, g/a) < 1.25``,
-    where an aligned depth ``a <= 0`` counts as a failure (it still enters abs_rel as is).
-    Both are NaN when no pixel counts.
+    pred, gt: (S, H, W) depths in metres; valid: optional bool mask. Pixels count when valid, ``gt > 0``
+    and finite. ``abs_rel = mean |a - g| / g``, ``delta1`` = fraction with ``max(a/g, g/a) < 1.25`` (an
+    aligned ``a <= 0`` fails it), ``a = scale * pred + shift`` (``pred`` when not ``align``). NaN when empty.
     """
     pred = jnp.asarray(pred)
     gt = jnp.asarray(gt, dtype=pred.dtype)
@@ -329,10 +315,8 @@ def depth_metrics(pred, gt, valid=None, align: bool = True) -> dict:
 def mask_metrics(pred, gt, valid=None) -> dict:
     """Binary mask agreement pooled over all pixels -> dict(iou, precision, recall) scalars in [0, 1].
 
-    pred, gt: masks of one shape (e.g. (S, H, W)); bool, or numbers thresholded at 0.5 (True =
-    dynamic). valid: optional bool mask of that shape. Never NaN: iou = 1 when both masks are empty,
-    precision = 1 when nothing is predicted, recall = 1 when gt is empty (sklearn's
-    ``zero_division=1``).
+    pred, gt: masks of one shape; bool or thresholded at 0.5 (True = dynamic); valid: optional mask.
+    Never NaN: an empty denominator gives 1 (sklearn's ``zero_division=1``).
     """
     pred = jnp.asarray(pred)
     gt = jnp.asarray(gt)
@@ -361,11 +345,9 @@ def mask_metrics(pred, gt, valid=None) -> dict:
 def reconstruction_metrics(pred_pts, gt_pts, pred_normals=None, gt_normals=None) -> dict:
     """Point-cloud accuracy/completion (metres) and normal consistency, 7-Scenes / NICE-SLAM protocol.
 
-    pred_pts (N, 3), gt_pts (M, 3); optional unit-or-not normals (N, 3), (M, 3) (normalised here).
-    accuracy = mean over predicted points of the distance to the nearest gt point (median too);
-    completion = mean over gt points of the distance to the nearest predicted point (median too);
-    normal_consistency (only with both normals) = mean of |n_pred . n_gt(nearest)| over predicted
-    points and of |n_gt . n_pred(nearest)| over gt points, averaged.
+    pred_pts (N, 3), gt_pts (M, 3), optional normals. accuracy: distance of predicted points to the
+    nearest gt point (mean, median); completion: the reverse; normal_consistency (with both normals):
+    mean ``|n_pred . n_gt(nearest)|`` both ways, averaged.
     """
     from scipy.spatial import cKDTree
 
@@ -400,13 +382,10 @@ def reconstruction_metrics(pred_pts, gt_pts, pred_normals=None, gt_normals=None)
 
 
 def depth_metrics_median(pred, gt, valid=None) -> dict:
-    """Depth errors after per-sequence *median scale* alignment (the video-depth protocol of
-    Table 1): ``a = s * pred`` with ``s = median(gt) / median(pred)`` over the pixels that count
-    (valid, ``gt > 0``, finite, ``pred > 0``) -> dict(abs_rel, delta1, scale) scalars.
+    """Depth errors after per-sequence median-scale alignment (Table 1) -> dict(abs_rel, delta1, scale).
 
-    pred, gt: (S, H, W) depths; valid: optional bool mask (S, H, W). abs_rel and delta1 as in
-    :func:`depth_metrics` with ``align=False`` on the scaled prediction. NaN when no pixel counts.
-    Jittable (:func:`cm3d.ops.robust.masked_median` over a fixed shape).
+    ``a = s * pred``, ``s = median(gt) / median(pred)`` over the pixels that count (valid, ``gt > 0``,
+    finite, ``pred > 0``); abs_rel and delta1 as :func:`depth_metrics`. NaN when no pixel counts.
     """
     pred = jnp.asarray(pred)
     gt = jnp.asarray(gt, dtype=pred.dtype)

@@ -1,12 +1,9 @@
 """Whole-trajectory refinement: one pose graph over every frame of a stitched video.
 
-Factors: a prior per frame at its stitched pose and a relative-motion factor per consecutive frame
-pair measured from the images (:func:`measure_frame_pairs`: optical flow + both frames' depth ->
-robust Sim(3)), across chunk boundaries alike. The four noise levels (prior / motion x translation
-/ rotation) come from robust variance component estimation (leverages, no ground truth); pairs
-with a poor fit or an implausible residual (``χ²_6``) are dropped. Consecutive pairs make the graph
-block-tridiagonal (:func:`cm3d.solvers.chain_pose_graph.solve_chain`, O(S) per step). The result is
-kept only when it stays within the noise the overlaps measured.
+A prior per frame at its stitched pose and a motion factor per consecutive pair measured from the
+images (:func:`measure_frame_pairs`: flow + depth -> robust Sim(3)). Noise levels come from robust
+variance component estimation; the chain is block-tridiagonal
+(:func:`cm3d.solvers.chain_pose_graph.solve_chain`). Entry point: :func:`refine_frames`.
 """
 
 from __future__ import annotations
@@ -37,17 +34,12 @@ _CHI2_1_MEDIAN = 0.45493642311957283  # median of χ²_1, exact (Wilson–Hilfer
 class FrameGraphConfig:
     """Options of :func:`refine_frames` (all static).
 
-    grid_step: every ``grid_step``-th pixel of frame i is a correspondence candidate;
-    robust_iterations, robust_k: IRLS rounds and the Cauchy scale (robust sigmas) of each pair's
-    Sim(3) fit; min_inlier_fraction, min_points, max_residual: a pair whose fit keeps fewer inliers
-    / valid points, or whose robust residual sigma exceeds ``max_residual`` x the median point
-    distance, is not used; vce_iterations: rounds of variance component estimation (robust: the
-    median of ``r² / (1 − h)``); outlier_quantile: a motion factor whose whitened squared residual
-    exceeds ``χ²_6(q)`` after a round is dropped; max_deviation: the result is refused when it moves
-    the trajectory (Sim(3)-aligned RMS) by more than this many times the per-frame centre noise;
-    iterations: Levenberg–Marquardt steps; pad_frames: the graph is padded to a multiple of this many
-    frames (padded frames carry only a prior) so videos of different lengths share one compiled
-    program; flow: OpenCV flow.
+    grid_step: pixel stride of correspondence candidates; robust_iterations, robust_k: IRLS rounds and
+    Cauchy scale of each pair's Sim(3) fit; min_inlier_fraction, min_points, max_residual: a pair's fit
+    is dropped below these inliers / points or above ``max_residual`` x the median point distance;
+    vce_iterations: variance-estimation rounds; outlier_quantile: drop motion factors above
+    ``χ²_6(q)``; max_deviation: refuse a result that moves the trajectory more than this many times the
+    centre noise; iterations: LM steps; pad_frames: pad the graph to a multiple (one compiled program).
     """
 
     grid_step: int = 2
@@ -94,13 +86,10 @@ def _pad(a, n: int, mode: str):
 
 
 def frame_pair_points(seq: Sequence, i: int, j: int, flow, step: int = 2, static=None):
-    """3D-3D correspondences between frames i and j of a sequence (host, NumPy float64).
-
-    Every ``step``-th pixel ``p`` of frame i, lifted with frame i's depth and intrinsics into camera
-    i, and its flow target ``q = p + flow[p]`` (``flow`` (H, W, 2), i -> j) lifted with frame j's
-    depth at the nearest pixel into camera j. Returns (src (P, 3) camera-j points, dst (P, 3)
-    camera-i points, ok (P,) bool: both depths valid, q inside the image, static in both frames when
-    ``static`` (S, H, W) is given). ``dst ≈ T src`` with ``T`` the Sim(3) cam j -> cam i."""
+    """3D-3D correspondences between frames i and j (host, NumPy float64): every ``step``-th pixel of i
+    lifted into camera i (dst) and its flow target lifted with j's depth into camera j (src).
+    Returns (src (P, 3), dst (P, 3), ok (P,)); ``dst ≈ T src`` with ``T`` the Sim(3) cam j -> cam i.
+    """
     H, W = seq.image_size
     v, u = np.mgrid[step // 2:H:step, step // 2:W:step]
     u, v = u.ravel(), v.ravel()
@@ -189,13 +178,11 @@ _ate = jax.jit(ate)
 
 def refine_frames(seq: Sequence, static=None, cfg: FrameGraphConfig = FrameGraphConfig(), noise: float | None = None,
                   rot_noise: float | None = None):
-    """Refine a whole (stitched) trajectory in one pose graph over every frame (module docstring).
+    """Refine a whole (stitched) trajectory in one pose graph over every frame.
 
-    static: optional (S, H, W) bool, True on static pixels (``1 − M_dyn``); noise / rot_noise:
-    per-frame centre noise (sequence units) and per-axis rotation noise (rad) of the priors, the
-    variance estimation's starting point (None: 1 % of the median depth, 1°); the result is refused
-    when it moves the trajectory by more than ``cfg.max_deviation x noise``. Returns (poses (S, 4, 4):
-    refined if kept, else the input; facts dict with ``kept``).
+    static: optional (S, H, W) bool; noise / rot_noise: prior centre noise (sequence units) and
+    rotation noise (rad), the variance estimation's start (None: 1 % of median depth, 1°). Returns
+    (poses (S, 4, 4), refined if kept else the input; facts dict with ``kept``).
     """
     t0 = time.perf_counter()
     P = np.asarray(seq.cam_to_world, np.float64)

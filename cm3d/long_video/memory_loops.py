@@ -1,12 +1,8 @@
-"""Memory recall across chunks: loop closures from the pipeline's memory, the Sim(3) pose graph
-over the chunks, and the whole-trajectory refinement.
+"""Memory recall across chunks: loop closures from the pipeline's memory, the Sim(3) pose graph over
+the chunks, and the whole-trajectory refinement (:func:`stitch_with_memory`).
 
-Every chunk runs through the pipeline threading **one** memory bank, so a chunk that comes back to
-an earlier place recalls the earlier chunk's map. Each accepted recall of a map created two or more
-chunks earlier is a Sim(3) loop constraint (:func:`recall_loops`), re-expressed between the chunks'
-prior frames (:func:`loop_to_prior_frames`); the Sim(3) pose graph
-(:func:`cm3d.long_video.pose_graph.sim3_pose_graph`) places the chunks' priors, and the frame graph
-refines the whole trajectory.
+Chunks run through the pipeline with one memory bank; a recall of a map made two or more chunks
+earlier is a Sim(3) loop (:func:`recall_loops`, :func:`loop_to_prior_frames`).
 """
 
 from __future__ import annotations
@@ -27,11 +23,10 @@ from cm3d.long_video.stitch import StitchResult, centre_noise
 
 
 def recall_loops(results, min_gap: int = 2) -> list[LoopClosure]:
-    """Loop closures from the pipeline's per-chunk results (chunks run in order with one memory
-    bank, :func:`cm3d.pipeline.run`; ``results[k].windows``: window records): every accepted recall
-    of a map created by a chunk at least ``min_gap`` chunks earlier (consecutive chunks are tied by
-    their overlap already). The map keeps the frame of the chunk that created it (updates are moved
-    into it), so the recall's Sim(3) maps the recalling chunk's frame into the creator's."""
+    """Loop closures from the pipeline's per-chunk results: every accepted recall of a map created at
+    least ``min_gap`` chunks earlier. A map keeps its creator chunk's frame, so the recall's Sim(3)
+    maps the recalling chunk's frame into the creator's.
+    """
     creator = {}
     loops = []
     for k, res in enumerate(results):
@@ -97,23 +92,13 @@ def stitch_with_memory(chunks, overlap: int | None = None, config: StitchConfig 
                        results=None) -> StitchResult:
     """Stitch chunks with memory recall across them, then refine the whole trajectory.
 
-    1. every chunk runs through the pipeline (:func:`cm3d.pipeline.run`) threading one memory bank;
-    2. consecutive chunks are aligned by Sim(3) on their shared frames, from the chunks' priors
-       (as :func:`cm3d.long_video.stitch_chunks`);
-    3. the loop closures (:func:`recall_loops`, :func:`loop_to_prior_frames`) and the overlaps
-       enter the Sim(3) pose graph over the chunk transforms (a loop inconsistent with the chain is
-       left out);
-    4. the chunks are placed by the pose graph's transforms and fused (the stitched priors);
-    5. ``refine``: the whole trajectory is refined (:func:`cm3d.long_video.refine_frames`, static
-       pixels from the pipeline's motion masks), kept when it passes its self-check.
-
-    pipeline_config: the pipeline's config (None: :func:`memory_config_for_chunks`); bank: a memory
-    bank to start from; progress: optional ``(stage, done, total)`` callable; results: the
-    pipeline's per-chunk results of an earlier call (skips step 1; ``bank`` is returned as given).
-    Returns :class:`StitchResult` (method ``"cm3d-memory"``) with ``loops``, ``bank`` and
-    ``results``; ``poses_aligned``: the chained overlap alignment; ``refinement``: the pose graph's
-    facts (per loop ``loop_discrepancy``, ``loop_kept``), ``poses_stitched`` (the pose graph's
-    placement of the priors) and ``frames`` (the refinement's facts).
+    Run every chunk with one memory bank; align consecutive chunks on their shared frames; put loops
+    and overlaps in the Sim(3) pose graph (inconsistent loops left out); place and fuse the chunks;
+    ``refine``: :func:`cm3d.long_video.refine_frames`, kept when it passes its self-check.
+    pipeline_config: None for :func:`memory_config_for_chunks`; bank: a bank to start from; progress:
+    optional ``(stage, done, total)``; results: per-chunk results of an earlier call (skips the runs).
+    Returns :class:`StitchResult` (method ``"cm3d-memory"``, with ``loops``, ``bank``, ``results``;
+    ``refinement`` has the pose graph's per-loop facts, ``poses_stitched`` and ``frames``).
     """
     from cm3d import pipeline
 
@@ -150,11 +135,9 @@ def stitch_with_memory(chunks, overlap: int | None = None, config: StitchConfig 
 
 
 def memory_sequence_result(res: StitchResult, chunks):
-    """A :class:`cm3d.pipeline.SequenceResult` of the whole video from :func:`stitch_with_memory`,
-    for the output writers (``cm3d run chunk0.npz chunk1.npz ... --memory BANK``): the refined
-    trajectory, the pose graph's placement of the priors as the prior, each frame's mask from the
-    chunk its image comes from, and every chunk's window records with global frame numbers and
-    their ``chunk``."""
+    """A :class:`cm3d.pipeline.SequenceResult` of the whole video from :func:`stitch_with_memory`, for
+    the output writers: refined trajectory, pose-graph priors, per-frame masks and window records.
+    """
     from cm3d import pipeline
 
     if res.method != "cm3d-memory":

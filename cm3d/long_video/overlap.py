@@ -1,11 +1,8 @@
 """Overlap alignment: the Sim(3) between consecutive chunks from their shared frames.
 
-Each chunk comes back in its own frame and scale. On the O frames two chunks share, a grid of the
-same pixels is lifted to 3D with each chunk's own depth, intrinsics and pose (the same pixel of the
-same frame: no matching needed); with the camera centres they are the correspondences of a robust
-Sim(3) fit ``A_k`` (chunk k -> chunk k-1, :func:`cm3d.solvers.sim3_irls.irls_sim3`, Cauchy at
-``robust_k`` MAD sigmas against depth noise). Chaining ``G_k = G_{k-1} A_k`` puts every chunk in
-chunk 0's frame and scale.
+On the frames two chunks share, the same pixel grid is lifted with each chunk's depth and pose (no
+matching needed); with the camera centres they feed a robust Sim(3) ``A_k`` (chunk k -> k-1,
+:func:`cm3d.solvers.sim3_irls.irls_sim3`). Chaining ``G_k = G_{k-1} A_k`` gives chunk 0's frame.
 """
 
 from __future__ import annotations
@@ -53,13 +50,10 @@ class StitchConfig:
 class Boundary:
     """Diagnostics of the boundary between chunks ``chunk - 1`` and ``chunk``.
 
-    frames: global [start, stop) of the shared frames; scale: the previous chunk's units per unit of
-    this chunk (the scale of ``A_k``; 1 for naive stitching); cumulative_scale: common units per unit
-    of ``chunk``; rotation_deg: the rotation of ``A_k``; rmse_points / rmse_centres: residuals of
-    the inlier lifted pixels / of the camera centres after alignment, common units; rel_rmse_points:
-    rmse_points over the shared pixels' median distance to their camera (unitless); inlier_fraction:
-    share of the valid lifted pixels within ``inlier_sigmas`` robust sigmas; num_points: valid
-    lifted pixels.
+    frames: global [start, stop) shared; scale: of ``A_k`` (1 for naive); cumulative_scale: common
+    units per unit of ``chunk``; rotation_deg: of ``A_k``; rmse_points / rmse_centres: inlier pixel /
+    camera-centre residuals (common units); rel_rmse_points: over the median depth; inlier_fraction:
+    within ``inlier_sigmas``; num_points: valid lifted pixels.
     """
 
     chunk: int
@@ -138,11 +132,9 @@ def _residual_stats(A, src, dst, is_pt):
 def align_overlap(prev, nxt, A0=None, cfg: StitchConfig = StitchConfig(), fit: bool = True) -> OverlapFit:
     """Sim(3) ``A`` (4x4, ``[s R, t]``) mapping chunk k's frame to chunk k-1's, from their shared frames.
 
-    prev, nxt: (depth (O, H, W), intrinsic (O, 3, 3), cam_to_world (O, 4, 4)) of the O shared frames
-    in chunk k-1 and chunk k. Correspondences: the ``cfg.grid`` pixels of every shared frame lifted
-    with each chunk's own depth and pose (valid where both depths are positive), plus the camera
-    centres (total weight ``centre_weight`` x the points'); robust IRLS fit. With ``fit=False``
-    only the diagnostics of the given ``A0`` are computed. Returns :class:`OverlapFit`.
+    prev, nxt: (depth (O, H, W), intrinsic (O, 3, 3), cam_to_world (O, 4, 4)) of the shared frames.
+    Correspondences: the ``cfg.grid`` pixels lifted by each chunk plus the camera centres; robust
+    IRLS. ``fit=False``: only the diagnostics of ``A0``. Returns :class:`OverlapFit`.
     """
     H, W = prev[0].shape[1:]
     rows, cols = (jnp.asarray(a) for a in sample_grid(H, W, cfg.grid))

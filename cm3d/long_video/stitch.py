@@ -1,12 +1,10 @@
 """Stitching overlapping, separately normalised chunks into one trajectory.
 
-VGGT runs out of memory beyond a few dozen frames, so a long video is run in overlapping chunks,
-each in its own frame (first camera the identity) and scale. :func:`naive_stitch`, the common
-approach, places each chunk rigidly on the previous chunk's pose of their first shared frame and
-ignores the scale. :func:`stitch_chunks`: **align** each boundary by a robust Sim(3) on the shared
-frames (:mod:`cm3d.long_video.overlap`), **chain** into chunk 0's frame and scale, **fuse** the
-shared frames (:mod:`cm3d.long_video.fuse`), then **refine** the whole trajectory in one pose graph
-over every frame (:mod:`cm3d.long_video.frame_graph`).
+VGGT runs out of memory beyond a few dozen frames, so a long video runs in overlapping chunks,
+each in its own frame and scale. :func:`stitch_chunks`: align each boundary by a robust Sim(3)
+(:mod:`~cm3d.long_video.overlap`), chain into chunk 0's frame, fuse the shared frames
+(:mod:`~cm3d.long_video.fuse`), refine in one frame graph (:mod:`~cm3d.long_video.frame_graph`).
+:func:`naive_stitch` is the common rigid, scale-blind baseline.
 """
 
 from __future__ import annotations
@@ -27,17 +25,12 @@ from cm3d.ops import sim3
 class StitchResult:
     """A stitched long video.
 
-    sequence: merged :class:`Sequence` (S frames, chunk 0's frame and scale; ``cam_to_world`` the
-    refined poses when refined, else the aligned ones; fused depth, confidence and intrinsics;
-    ground truth merged when every chunk has it); poses_aligned (S, 4, 4): after align + chain +
-    fuse (the stitched priors); poses_refined (S, 4, 4) or None: the whole-trajectory refinement's
-    output (refined when kept, else the stitched priors); chunk_transforms (K, 4, 4): ``G_k`` chunk
-    k -> common (``[s R, t]``); ranges: global [start, stop) per chunk; frame_chunk (S,): the chunk
-    each frame's image and ground truth come from; boundaries: one :class:`Boundary` per boundary;
-    refined: the gate kept the refinement; refinement: facts of the refinement; method: "cm3d",
-    "naive" or "cm3d-memory" (:func:`cm3d.long_video.stitch_with_memory`; then ``poses_aligned`` is
-    the chained alignment before the pose graph, ``loops`` the loop closures, ``bank`` the memory
-    bank after every chunk and ``results`` the pipeline's per-chunk results).
+    sequence: merged :class:`Sequence` (chunk 0's frame and scale; refined poses when kept, fused
+    depth; ground truth when every chunk has it); poses_aligned (S, 4, 4): the stitched priors (align
+    + chain + fuse); poses_refined (S, 4, 4) or None; chunk_transforms (K, 4, 4): ``G_k`` chunk k ->
+    common; ranges: global [start, stop) per chunk; frame_chunk (S,): the chunk of each frame's image;
+    boundaries: one :class:`Boundary` each; refined: the gate kept the refinement; refinement: its
+    facts; method: "cm3d", "naive" or "cm3d-memory" (then also ``loops``, ``bank``, ``results``).
     """
 
     sequence: Sequence
@@ -74,16 +67,11 @@ def centre_noise(bounds) -> float | None:
 
 def stitch_chunks(chunks, overlap: int | None = None, config: StitchConfig = StitchConfig(), static=None,
                   refine: bool = True, frame_config: FrameGraphConfig = FrameGraphConfig()) -> StitchResult:
-    """Stitch overlapping chunks (each in its own frame and scale) into one sequence: a Sim(3) per
-    boundary, chained into chunk 0's frame and scale, fused, then (``refine``) the whole trajectory
-    refined in one pose graph over every frame (:func:`cm3d.long_video.refine_frames`).
+    """Stitch overlapping chunks (each in its own frame and scale) into one sequence.
 
-    chunks: list of :class:`Sequence` in temporal order (layout: :mod:`cm3d.long_video.layout`);
-    overlap: shared frames per boundary (None: from timestamps); static: optional (S, H, W) bool
-    mask of static pixels of the *merged* frames (``1 − M_dyn``) for the refinement's
-    correspondences. A single chunk is returned as it is (identity transform, no boundaries).
-    Returns :class:`StitchResult` (``poses_aligned``: the stitched priors; ``sequence.cam_to_world``:
-    refined when kept).
+    chunks: :class:`Sequence` list in temporal order; overlap: shared frames per boundary (None: from
+    timestamps); static: optional (S, H, W) bool of the merged frames for the refinement. A single
+    chunk is returned as it is. Returns :class:`StitchResult`.
     """
     if refine not in (True, False):
         raise StitchError(f"refine: expected True or False, got {refine!r}")
@@ -109,10 +97,10 @@ def stitch_chunks(chunks, overlap: int | None = None, config: StitchConfig = Sti
 
 
 def naive_stitch(chunks, overlap: int | None = None, config: StitchConfig = StitchConfig()) -> StitchResult:
-    """The common naive stitching: chunk k is placed rigidly (SE(3), no scale) so that its first
-    shared frame coincides with chunk k-1's placed pose of that frame; a shared frame keeps the
-    earlier chunk's pose and depth; depths are not rescaled. The boundaries' diagnostics measure
-    the same overlap residuals as :func:`stitch_chunks` (scale 1)."""
+    """The common naive stitching: chunk k placed rigidly (SE(3), no scale) on chunk k-1's pose of their
+    first shared frame; shared frames keep the earlier chunk's pose and depth. Diagnostics as
+    :func:`stitch_chunks` (scale 1).
+    """
     chunks = check_chunks(chunks)
     ranges, overlaps, ts = chunk_layout(chunks, overlap)
     M = [np.eye(4)]

@@ -1,36 +1,12 @@
 """A learned 3D global descriptor: a small PointNet++ encoder (Flax linen) with shipped weights.
 
-:func:`cloud_descriptor` maps a voxelised static cloud (N, 3) with a validity mask (N,) — in a
-map's own frame and own unknown scale — to a unit descriptor (512,). Pure: jit, vmap and grad.
-
-1. **Resample** (:func:`resample`): the valid points, compacted in their order, evenly resampled
-   to ``num_points`` = 512 (repeated when fewer; a stored map holds ~1000-2000 voxels). Padding
-   and invalid rows never change the output.
-2. **Similarity normalisation** (:func:`normalise`): centre on the centroid of the resampled
-   points, divide by their RMS radius (every VGGT run has its own scale).
-3. **Three set-abstraction levels** (:class:`SetAbstraction`): farthest point sampling of
-   128 / 32 / 8 centroids (:func:`farthest_point_sampling`), ball query of 16 / 16 / 8 points
-   within radius 0.4 / 0.8 / 1.6 (normalised units, :func:`ball_group`), a shared MLP (Dense,
-   LayerNorm, ReLU) on each grouped point's yaw-invariant (:func:`cylindrical`) offset from its
-   centre, its position and its features, max over the group: 128, 256 and 512 features.
-4. **Global max pooling** over the 8 centroids, a linear layer, L2 normalisation.
-
-Rotation: a map and a revisit are in their first cameras' frames. In the synthetic worlds (as
-with a handheld or robot camera) the first camera's y ("down") axis is within a few degrees of
-gravity up to its pitch (about 17 +- 4 degrees there), so two visits of one room differ by a yaw
-about gravity (any angle), a small tilt, a translation and a scale. Translation and scale are
-removed by step 2; yaw about the camera y axis is removed *by construction*: every input of the
-network is a distance from that axis or a coordinate along it (:func:`cylindrical`), and sampling
-and grouping only use distances. Tilts (the pitch difference between two first cameras) are
-learnt by augmentation (up to 5 degrees, ``experiments/train_pointnet2.py``). The descriptor is
-therefore not invariant to arbitrary 3D rotations (:func:`cm3d.ops.descriptors.cloud_descriptor`
-is, by design); no PCA canonicalisation (unstable on partial views of near-square rooms).
-
-Weights (:func:`load_params`, :func:`save_params`): one ``.npz`` of float16 arrays named by their
-parameter path plus a JSON ``__meta__`` (format version, architecture, training facts, SHA-256 of
-the arrays); written atomically; a missing, truncated or altered file or another architecture
-raises :class:`WeightsError` naming the file and the problem. The shipped file is
-``cm3d/models/pointnet2.npz`` (package data glob: ``models/*.npz``).
+:func:`cloud_descriptor` maps a voxelised static cloud (N, 3) with a validity mask (N,), in a map's
+own frame and scale, to a unit descriptor (512,). Pure: jit, vmap and grad. Steps: :func:`resample`
+to 512 points, :func:`normalise` (centroid, RMS radius), three :class:`SetAbstraction` levels
+(FPS + ball query on yaw-invariant :func:`cylindrical` coordinates), global max pool, linear, L2.
+Invariant to yaw about the camera y axis, translation and scale; not to arbitrary 3D rotations
+(docs/pointnet2.md). Weights: :func:`load_params` / :func:`save_params`, one float16 ``.npz`` with
+a SHA-256 header (``cm3d/models/pointnet2.npz``); a bad file raises :class:`WeightsError`.
 """
 
 from __future__ import annotations
@@ -90,10 +66,7 @@ CONFIG = PointNet2Config()
 
 def resample(points, valid, n: int):
     """The valid points (in their order) evenly resampled to ``n`` rows: ``(points (n, 3), ok)``.
-
-    Index ``i`` takes the ``floor(i * nv / n)``-th valid point (nv = number of valid points), so
-    every valid point is used once when ``nv <= n`` and an even subset is kept when ``nv > n``;
-    ``ok`` is False for an empty cloud. Invalid rows, wherever they are, never matter.
+    Index ``i`` takes the ``floor(i * nv / n)``-th valid point; ``ok`` is False for an empty cloud.
     """
     points = jnp.where(valid[:, None], jnp.asarray(points, jnp.float32), 0.0)
     order = jnp.argsort(~valid, stable=True)  # valid rows first, in their order
@@ -134,9 +107,7 @@ def ball_group(centres, points, valid, radius: float, k: int):
     """PointNet++ ball query: for each centre (M, 3) the indices (M, k) of the first ``k`` valid
     points (in index order) within ``radius``; missing slots repeat the first one, and a centre
     with no point in its ball gets its nearest valid point. Also returns the count in the ball (M,).
-
-    A cumulative count along the points and a binary search per slot (no sort: top-k is slow on
-    CPU); squared distances as ``|c|^2 + |p|^2 - 2 c.p`` (a matrix product).
+    A cumulative count and a binary search per slot (no sort: top-k is slow on CPU).
     """
     d2 = (jnp.sum(centres**2, -1)[:, None] + jnp.sum(points**2, -1)[None, :] - 2.0 * centres @ points.T)
     d2 = jnp.where(valid[None, :], d2, jnp.inf)
@@ -264,9 +235,7 @@ def _read(path: Path):
 
 def load_params(path=None, cfg: PointNet2Config = CONFIG):
     """Parameters (nested dict of float32 numpy arrays) from a weight file (default: the shipped one).
-
-    Raises :class:`WeightsError` when the file is missing, truncated, fails its SHA-256 check, has
-    another format version, or holds another architecture than ``cfg``.
+    Raises :class:`WeightsError` when the file is missing, corrupt, or of another format or architecture.
     """
     path = Path(DEFAULT_WEIGHTS if path is None else path)
     arrays, meta = _read(path)

@@ -68,15 +68,13 @@ def _depth_smooth(depth, max_ratio: float):
 
 def keypoint_displacements(prior_t: FramePrior, prior_t2: FramePrior, matches, rel,
                            cfg: MotionConfig = MotionConfig()):
-    """Relative 3D displacement (N, 3) of matched keypoints in camera-t axes, their unit viewing
-    rays (N, 3) and validity (N,).
+    """Relative 3D displacement (N, 3) of matched keypoints in camera-t axes, their unit viewing rays
+    (N, 3) and validity (N,).
 
-    Both ends are lifted with their frame's 3x3-median depth, the t2 end brought into camera t by
-    ``inv(rel)``; keypoints on a depth edge (3x3 depth span above ``kp_max_depth_ratio``) at either
-    end are invalid, as their depth may belong to the other surface. The depth of frame t2 is first
-    rescaled by the median ratio between the depth the t-end predicts there and the observed one
-    (the prior's per-frame depth scale jitter), and the displacement is divided by the keypoint's
-    depth in frame t, so it is free of the prior's unknown scale.
+    Both ends are lifted with their frame's 3x3-median depth (invalid on a depth edge), the t2 end
+    brought into camera t by ``inv(rel)``; frame t2's depth is rescaled by the median predicted /
+    observed ratio and the displacement divided by the depth in frame t, so it is free of the
+    prior's unknown scale.
     """
     uv0, uv1 = matches.uv0.astype(prior_t.depth.dtype), matches.uv1.astype(prior_t.depth.dtype)
     z0, in0 = _sample_median3(prior_t.depth, uv0)
@@ -105,19 +103,13 @@ def static_reference(labels, matches, kp_ok, cfg: MotionConfig = MotionConfig())
 def dynamic_keypoints(disp, ray, ok, cfg: MotionConfig = MotionConfig(), reference=None):
     """Keypoints (N,) whose relative displacement deviates from the robust mean one.
 
-    The robust statistics come from the ``reference`` keypoints (N,) bool (default: all valid
-    ones; :func:`motion_cues` passes those outside the candidate regions, so that a mover holding
-    many keypoints cannot drag the reference motion). With fewer than ``kp_min_reference``
-    reference keypoints (the matches sit on the movers) the reference is the static-scene model
-    itself: zero displacement (the relative pose was aligned to the flow) with the noise sigmas
-    ``kp_sigma_along`` / ``kp_sigma_across``.
-
-    The deviation from the coordinate-wise median displacement is split along the viewing ray
-    (where the depth noise lies) and across it (where only the keypoint's pixel error does); each
-    part is scaled by its own robust sigma (MAD; Rayleigh median across), and a keypoint is dynamic
-    when the combined score exceeds ``kp_sigma_k`` and the deviation exceeds ``kp_min_rel_disp``
-    (magnitude test), or when both ``|d_i|`` and the median ``|m|`` exceed ``kp_min_rel_disp`` and
-    their angle exceeds ``kp_direction_deg`` (direction test).
+    Statistics come from the ``reference`` keypoints (default: all valid; :func:`motion_cues` passes
+    those outside the candidate regions); with fewer than ``kp_min_reference`` the reference is zero
+    displacement with sigmas ``kp_sigma_along`` / ``kp_sigma_across``. The deviation from the median
+    is split along the viewing ray (depth noise) and across it, each scaled by its robust sigma. A
+    keypoint is dynamic when the score exceeds ``kp_sigma_k`` and the deviation ``kp_min_rel_disp``
+    (magnitude), or when both ``|d_i|`` and ``|m|`` exceed ``kp_min_rel_disp`` at an angle above
+    ``kp_direction_deg`` (direction).
     """
     ref = ok if reference is None else jnp.asarray(reference, bool) & ok
     enough = jnp.sum(ref) >= cfg.kp_min_reference
@@ -142,10 +134,8 @@ def dynamic_keypoints(disp, ray, ok, cfg: MotionConfig = MotionConfig(), referen
 def robust_motion_cue(labels, matches, kp_dynamic, kp_ok, cfg: MotionConfig = MotionConfig()):
     """Candidate regions (labels from :func:`candidate_regions`) confirmed by dynamic keypoints.
 
-    A region is kept when it holds at least ``kp_min_dynamic`` dynamic keypoints that are also at
-    least ``kp_min_fraction`` of its valid keypoints; a region without any valid keypoint is kept
-    iff ``keep_unverified``. Returns the mask (H, W) and the per-keypoint "dynamic and inside a
-    candidate" flags (N,).
+    A region is kept with at least ``kp_min_dynamic`` dynamic keypoints, also ``kp_min_fraction`` of
+    its valid ones; one without keypoints iff ``keep_unverified``. Returns (mask (H, W), flags (N,)).
     """
     H, W = labels.shape
     n = H * W

@@ -1,8 +1,7 @@
 """Track cue: landmark tracks that move against the rigidly explained static scene over several frames.
 
-A mover as slow as the prior's pose noise is lost in the two-frame residual flow, but its track
-drifts off the rigidly explained scene every frame: per (seed block, frame) group a rigid
-correction is fitted robustly, and tracks whose RMS residual after it is an outlier are moving.
+Why: a mover as slow as the prior's pose noise is lost in the two-frame residual flow, but its track
+drifts off the scene every frame. Entry points: :func:`track_residuals`, :func:`moving_tracks`.
 """
 
 from __future__ import annotations
@@ -32,20 +31,14 @@ def track_residuals(points, poses, intrinsics, pose_idx, uv, valid, block, num_b
                     cfg: MotionConfig = MotionConfig()):
     """Reprojection residuals of landmark tracks after each group's best rigid correction.
 
-    points (L, 3) world landmarks lifted from their seed pixel (prior depth, prior pose of the seed
-    frame); poses (W, 4, 4) cam_to_world priors and intrinsics (W, 3, 3) of the window's frames;
-    pose_idx, uv, valid (L * T,) the tracks' observations, landmark-major (observation t of
-    landmark l at ``l * T + t``, t = 0 the seed); block (L,) int in [0, num_blocks): the seeding
-    block (landmarks seeded from one frame share its pose error).
-
-    A prior pose error moves every static landmark seen in frame i and seeded in block b by one
-    rigid transform of camera i (the error of the pair's relative pose): per group (b, i), a
-    correction ``exp(delta) T`` of the landmarks' camera points is fitted by ``track_iters`` damped
-    Gauss-Newton steps with Geman-McClure weights at the group's robust scale (``1.4826`` x its
-    median residual, at least ``track_min_scale_px``), so tracks on moving objects stay outliers.
-    (A rigid model, not an affine image motion: the translation error's parallax depends on depth,
-    see docs/motion.md.) Returns (residual (L * T, 2) px, judged (L * T,)
-    bool: t > 0, in front of the camera, in a group of at least ``track_min_obs`` observations)."""
+    points (L, 3) world landmarks from their seed pixel; poses (W, 4, 4) cam_to_world priors and
+    intrinsics (W, 3, 3); pose_idx, uv, valid (L * T,) landmark-major observations (t = 0 the seed);
+    block (L,) int in [0, num_blocks): the seeding block. Per group (block b, frame i) a rigid
+    correction ``exp(delta) T`` is fitted by ``track_iters`` damped Gauss-Newton steps with
+    Geman-McClure weights at the group's robust scale, so tracks on movers stay outliers (a rigid
+    model, not an affine one: the parallax depends on depth, docs/motion.md). Returns (residual
+    (L * T, 2) px, judged (L * T,) bool: t > 0, in front, in a group of >= ``track_min_obs``).
+    """
     L = points.shape[0]
     Kn = pose_idx.shape[0]
     T = Kn // L
@@ -77,12 +70,10 @@ def moving_tracks(points, poses, intrinsics, pose_idx, uv, valid, block, num_blo
                   cfg: MotionConfig = MotionConfig()):
     """The track cue: (L,) bool, landmark tracks that move against the static scene.
 
-    A mover as slow as the prior's pose noise (about 1 px per frame at 96x128) is lost in the
-    two-frame residual flow, but its track drifts off the rigidly explained scene by that much
-    every frame. Each track's RMS residual over its judged observations (:func:`track_residuals`)
-    is compared with ``max(track_min_px, median + track_n_mad 1.4826 MAD)`` over the judged tracks.
-    Arguments as :func:`track_residuals`; tracks without a judged observation are not moving.
-    Returns all False when ``cfg.track_cue`` is off."""
+    A track moves when its RMS residual (:func:`track_residuals`) exceeds
+    ``max(track_min_px, median + track_n_mad 1.4826 MAD)`` over the judged tracks. Arguments as
+    :func:`track_residuals`; all False when ``cfg.track_cue`` is off.
+    """
     L = points.shape[0]
     if not cfg.track_cue:
         return jnp.zeros(L, bool)

@@ -1,30 +1,11 @@
-"""Gaussian mixture on 2D vectors (optical flow), fitted by EM in JAX.
+"""Gaussian mixture on 2D vectors (optical flow), fitted by EM in JAX (the paper's flow cue).
 
-Full 2x2 covariances, a deterministic seeded k-means++ initialisation, and at most ``max_iters``
-EM iterations inside one ``lax.while_loop`` that stops early when the mean log-likelihood changes by
-less than ``tol`` (``tol=0`` runs every iteration, like scikit-learn's ``tol=0``). The result
-matches ``sklearn.mixture.GaussianMixture(covariance_type="full")`` started from the same
-parameters (see ``tests/test_gmm.py``).
-
-Speed: the E and M steps are each one small contraction over the per-point quadratic features
-``phi = [1, x, y, x^2, xy, y^2]``, stored feature-major (6, N) so that N is the contiguous axis:
-
-* E step: ``log(pi_k N(x | mu_k, S_k)) = W_k . phi(x)`` with ``W_k`` built from the precision
-  ``P_k = S_k^-1`` (``[a_k, P mu, -P_11/2, -P_12, -P_22/2]``), so one (K, 6) x (6, N) product gives
-  every log-density;
-* M step: ``sum_i r_ik phi(x_i)`` is one (K, N) x (N, 6) product: counts, first and second
-  moments of every component at once;
-* the log-sum-exp and argmax over the K components are unrolled row by row (XLA:CPU reduces the
-  short leading axis of a (K, N) array several times slower);
-* under ``vmap`` a custom batching rule maps the single-frame program over the frames.
-
-The points are first shifted and scaled by their (valid) mean and RMS spread, which keeps the
-float32 moment sums well conditioned; results are mapped back to the input units.
-
-Degenerate input (all points equal, fewer distinct points than K, no valid point) never produces
-NaN: component counts are floored at ``10 eps`` (as scikit-learn does), variances are clipped at 0
-and floored at ``reg_covar + 1e-6 E[x^2]``, and k-means++ falls back to uniform sampling when every remaining
-squared distance is zero.
+Full 2x2 covariances, seeded k-means++ initialisation, at most ``max_iters`` EM iterations in one
+``lax.while_loop`` (early stop at ``tol``; ``tol=0`` runs all, as scikit-learn). Matches
+``sklearn.mixture.GaussianMixture(covariance_type="full")`` from the same start. The E and M steps
+are contractions over the quadratic features ``phi = [1, x, y, x^2, xy, y^2]`` (6, N); points are
+normalised by their mean and RMS spread first. Degenerate input never gives NaN (docs/motion.md).
+Entry points: :func:`fit_gmm`, :func:`slowest_component_mask`.
 """
 
 from __future__ import annotations
@@ -80,11 +61,9 @@ def _features(x, y):
 
 
 def _params_from_moments(S: jnp.ndarray, total: jnp.ndarray, reg: jnp.ndarray):
-    """Weights, means, covariances from per-component moment sums S (K, 6) (M step).
-
-    ``E[x^2] - E[x]^2`` loses float32 digits for a tight component far from the origin, so each
-    variance is clipped at 0 and floored at ``reg + 1e-6 E[x^2]`` (a few float32 ulps of the moment)
-    and the correlation kept inside (-1, 1): every covariance stays positive definite.
+    """Weights, means, covariances from per-component moment sums S (K, 6) (M step). Variances are
+    clipped at 0 and floored at ``reg + 1e-6 E[x^2]`` (float32 cancellation), so every covariance is
+    positive definite.
     """
     nk = S[:, 0] + _EPS
     mx, my = S[:, 1] / nk, S[:, 2] / nk
@@ -112,9 +91,7 @@ def _log_density_coefficients(weights, means, cov):
 
 def _e_step(coef, phi):
     """Log-densities ``coef @ phi`` (K, N) -> (responsibilities (K, N), per-point log-likelihood (N,)).
-
-    The log-sum-exp over the K components is unrolled row by row: XLA:CPU reduces a (K, N) array
-    over its short leading axis several times slower than these K elementwise passes.
+    The log-sum-exp over K is unrolled row by row (faster on XLA:CPU).
     """
     logp = coef @ phi
     rows = [logp[k] for k in range(logp.shape[0])]
@@ -202,12 +179,9 @@ def _init_standardized(z, w, cfg, reg):
 def fit_gmm(x, cfg: GMMConfig = GMMConfig(), valid=None, init=None) -> GMMResult:
     """Fit a K-component full-covariance GMM to points x (N, 2) by EM; labels for every point.
 
-    valid: optional (N,) bool; invalid points are labelled but do not enter the fit.
-    init: optional (weights (K,), means (K, 2), covariances (K, 2, 2)) in input units, replacing
-    the seeded k-means++ initialisation. Pure and jittable (``cfg`` static); vmap over a leading
-    frame axis of ``x`` (and ``valid``) for batches: the batching rule maps the single-frame
-    program over the frames (``lax.map``), because on XLA:CPU the batched (B, K, N) x (B, N, 6)
-    moment products run 2x slower than B single-frame ones.
+    valid: optional (N,) bool; invalid points are labelled but do not enter the fit. init: optional
+    (weights (K,), means (K, 2), covariances (K, 2, 2)) replacing k-means++. Jittable (``cfg``
+    static); under ``vmap`` a custom batching rule maps the single-frame program over the frames.
     """
     x = jnp.asarray(x, jnp.float32)
     if x.ndim != 2 or x.shape[-1] != 2:

@@ -109,12 +109,9 @@ DESCRIPTOR_DIM = {"sift": 128, "orb": 256}
 
 def detect_features(image: np.ndarray, mask: np.ndarray | None = None, capacity: int = 256,
                     cfg: KeypointConfig = KeypointConfig(), contrast_threshold: float | None = None) -> Features:
-    """Keypoints and descriptors of ``image`` inside ``mask`` (H, W) bool, padded to ``capacity``.
-
-    SIFT descriptors are RootSIFT (L1-normalised, square-rooted: unit L2, so the Euclidean distance
-    is Hellinger's); ORB's 256 bits become +-1/16 (unit L2, distance a monotone function of Hamming).
-    The strongest ``capacity`` responses are kept, strongest first. ``contrast_threshold``: SIFT's
-    (OpenCV default 0.04); lower finds keypoints on weakly textured, small images.
+    """Keypoints and descriptors of ``image`` inside ``mask`` (H, W) bool, padded to ``capacity``,
+    strongest first. SIFT descriptors are RootSIFT (Euclidean = Hellinger); ORB's 256 bits become
+    +-1/16 (unit L2). ``contrast_threshold``: SIFT's (OpenCV default 0.04).
     """
     import cv2
 
@@ -236,14 +233,12 @@ def _pixel_rays(K, H, W, stride=1):
 
 
 def floor_plane(depth, K, cam_to_world, static=None, cfg: FloorConfig = FloorConfig(), seed: int = 0):
-    """The floor ``(n, c)`` (unit normal pointing up, ``n . x + c = 0``, ``c`` > 0: the first camera's
-    height above it) in the frame of ``cam_to_world``, or None when no plane qualifies.
+    """The floor ``(n, c)`` (unit normal up, ``n . x + c = 0``, ``c`` > 0: the first camera's height) in
+    the frame of ``cam_to_world``, or None when no plane qualifies.
 
-    RANSAC over the static pixels' points (every ``cfg.stride``-th pixel): planes whose normal is
-    within ``cfg.max_tilt`` of the first camera's up and which lie below the first camera; the one
-    with most points within 1 % of the camera height wins, refitted by least squares on its inliers.
-    It is the dominant horizontal surface below the camera: the floor in a room, a table top when the
-    camera looks down at a desk (real TUM fr2 frames, ``tests/test_descriptors.py``)."""
+    RANSAC over the static pixels' points for planes within ``cfg.max_tilt`` of the first camera's up
+    and below it, refitted on the inliers: the dominant horizontal surface (a floor, or a table top).
+    """
     depth, K, cam_to_world = np.asarray(depth, np.float64), np.asarray(K, np.float64), np.asarray(cam_to_world, np.float64)
     S, H, W = depth.shape
     st = cfg.stride
@@ -289,14 +284,12 @@ def floor_plane(depth, K, cam_to_world, static=None, cfg: FloorConfig = FloorCon
 
 
 def floor_orthophoto(images, depth, K, cam_to_world, static, plane, cfg: FloorConfig = FloorConfig()):
-    """A top-down mosaic of the floor ``plane`` (from :func:`floor_plane`): ``(image (h, w, 3) uint8,
-    valid (h, w) bool, to_world (3, 3))`` with ``to_world`` taking homogeneous orthophoto pixels
-    ``(u, v, 1)`` to points on the plane (columns: u axis, v axis, origin).
+    """A top-down mosaic of the floor ``plane``: ``(image (h, w, 3) uint8, valid (h, w) bool, to_world
+    (3, 3))``, ``to_world`` taking orthophoto pixels ``(u, v, 1)`` to points on the plane.
 
-    Every frame's floor pixels (static, depth within ``plane_tolerance`` of the plane's along the ray)
-    are warped by the plane's homography; where frames overlap the closest camera's view is kept (the
-    sharpest). A view of the floor from another place and direction gives the same picture up to a
-    2D rotation, translation and scale, which SIFT is invariant to: unlike the perspective images."""
+    Floor pixels of every frame are warped by the plane's homography (the closest camera wins). Why:
+    views of the floor from anywhere differ by a 2D similarity, which SIFT is invariant to.
+    """
     return _orthophoto(*_check_views(images, depth, K, cam_to_world, static), plane, cfg)
 
 
@@ -353,12 +346,10 @@ def _orthophoto(images, depth, K, cam_to_world, static, plane, cfg: FloorConfig)
 
 def floor_features(images, depth, K, cam_to_world, static=None, capacity: int = 512,
                    cfg: FloorConfig = FloorConfig(), seed: int = 0) -> FloorFeatures:
-    """SIFT keypoints of the floor orthophoto (:func:`floor_orthophoto` of :func:`floor_plane`) as 3D
-    points in the frame of ``cam_to_world`` with RootSIFT descriptors, the ``capacity`` strongest first.
-
-    images (S, H, W, 3) uint8, depth (S, H, W) (<= 0 or non-finite: no depth), K (S, 3, 3),
-    cam_to_world (S, 4, 4), static (S, H, W) bool (None: all). Host side (NumPy + OpenCV). No floor
-    found (no plane within ``cfg.max_tilt`` of up, below the first camera): no valid keypoint."""
+    """SIFT keypoints of the floor orthophoto as 3D points in the frame of ``cam_to_world`` with RootSIFT
+    descriptors, the ``capacity`` strongest first (host, NumPy + OpenCV; no floor: none valid).
+    images (S, H, W, 3) uint8, depth (S, H, W), K (S, 3, 3), cam_to_world (S, 4, 4), static (S, H, W).
+    """
     import cv2
 
     if capacity < 1:

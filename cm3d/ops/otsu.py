@@ -1,18 +1,11 @@
 """Otsu's threshold in JAX, bin for bin the same as ``skimage.filters.threshold_otsu``.
 
-For a float32 array and the same ``nbins`` the histogram, the bin centres and the threshold equal
-scikit-image's exactly (tested on many random inputs): the bins are NumPy's uniform bins over
-``[min, max]`` (``np.linspace`` edges in float32, NumPy's index formula and its one-ulp edge
-corrections), the class weights and means are accumulated sequentially in float32 as
-``np.cumsum`` does, and the first maximum of the between-class variance wins.
-
-A ``valid`` mask restricts the histogram to some elements (scikit-image on ``x[valid]``);
-non-finite values are always left out. Graceful paths instead of errors, all NaN-free: a single
-distinct value returns that value (as scikit-image does), and no valid element returns 0.
-Integer images: scikit-image gives every integer its own bin there, so compare on
-``x.astype(np.float32)``. float64 input is computed in float32 unless x64 is enabled. Subnormal
-values (|x| < 1.2e-38 in float32) count as 0: XLA flushes them to zero on CPU and GPU, so one next
-to a bin edge at 0 can land one bin higher than in NumPy.
+For float32 input and the same ``nbins`` the histogram, bin centres and threshold equal
+scikit-image's: NumPy's uniform bins over ``[min, max]`` (its edge corrections included), class
+weights and means accumulated sequentially in float32 as ``np.cumsum``, the first maximum wins.
+``valid`` restricts the histogram; non-finite values are left out. No errors, no NaN: one distinct
+value returns it, no valid element returns 0. Integer images: compare on ``x.astype(np.float32)``.
+Subnormals count as 0 (XLA flushes them; docs/motion.md).
 """
 
 from __future__ import annotations
@@ -33,9 +26,9 @@ def _sequential_cumsum(x: jnp.ndarray) -> jnp.ndarray:
 
 
 def _rounded(p: jnp.ndarray, zero: jnp.ndarray) -> jnp.ndarray:
-    """``p`` unchanged, but opaque to the compiler: XLA:CPU would otherwise contract a following
-    ``p + c`` with the product into one fused multiply-add (a different rounding from NumPy's).
-    ``zero`` is a runtime int32 zero, so the integer round trip cannot be folded away."""
+    """``p`` unchanged, but opaque to the compiler, so XLA:CPU cannot fuse a following ``p + c`` into an
+    FMA (a different rounding from NumPy's); ``zero`` is a runtime int32 zero.
+    """
     ib = jax.lax.bitcast_convert_type(p, jnp.int32) ^ zero
     return jax.lax.bitcast_convert_type(ib, p.dtype)
 
@@ -95,10 +88,8 @@ def histogram(x, nbins: int = 256, valid=None):
 
 
 def threshold_from_histogram(counts, centres):
-    """Otsu threshold (scalar) of a histogram: the centre maximising the between-class variance.
-
-    Empty leading and trailing bins are skipped, as scikit-image trims them; an all-zero histogram
-    returns ``centres[0]``.
+    """Otsu threshold (scalar) of a histogram: the centre maximising the between-class variance
+    (empty end bins skipped, as scikit-image; an all-zero histogram returns ``centres[0]``).
     """
     c = jnp.asarray(counts).astype(jnp.float32)
     centres = jnp.asarray(centres)

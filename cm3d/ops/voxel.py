@@ -1,17 +1,8 @@
 """Voxel grids in JAX: a fixed-capacity hash of integer cells, voxel downsampling and a pyramid.
 
-Everything here has fixed shapes: inputs are padded arrays with a validity mask, outputs are
-padded to a static ``capacity`` with a validity mask, and a capacity that is too small is reported
-(``overflow`` counts what did not fit) instead of silently dropped.
-
-The cell hash is open addressing with linear probing, built without sorting: in each round every
-key still unplaced writes its item id into its current probe slot with a scatter-min (only into
-empty slots); the keys that lost the slot to a *different* key probe the next slot in the next
-round (one small while loop: quick to compile, and as fast as compacting the stragglers). Keys
-that are equal move in lockstep, so each distinct key ends in exactly one slot. XLA's CPU scatter
-is much faster than its sort, which is what makes :func:`voxel_downsample` faster than Open3D's
-``voxel_down_sample``.
-
+Fixed shapes: padded inputs and outputs with validity masks; a too-small capacity is reported
+(``overflow``), never silently dropped. The cell hash is open addressing with linear probing, built
+without sorting by rounds of scatter-min (XLA:CPU scatters are much faster than its sort).
 Cell of a point: ``floor((p - origin) / cell)``, Open3D's rule, with ``origin = min - voxel / 2``.
 """
 
@@ -210,12 +201,10 @@ def voxel_downsample(points, voxel_size, valid=None, features=None, capacity: in
                      weights=None, origin=None) -> Voxels:
     """Mean point (and mean features) per occupied voxel, as Open3D's ``voxel_down_sample``.
 
-    points: (n, 3); voxel_size: scalar > 0 (metres; may be traced); valid: optional (n,) mask
-    (non-finite points are always dropped); features: optional (n, F) (colour, confidence, ...);
-    capacity: static output size (default n); weights: optional (n,) point weights (a pyramid passes
-    the counts of the finer level); origin: optional (3,) grid origin, default ``min - voxel / 2``
-    (Open3D's). Returns :class:`Voxels`; the voxel order is the hash order (deterministic, not
-    sorted). A non-positive or non-finite voxel size gives an empty result.
+    points: (n, 3); voxel_size: scalar > 0 (may be traced); valid: optional (n,) mask (non-finite
+    points are dropped); features: optional (n, F); capacity: static output size (default n);
+    weights: optional (n,); origin: optional (3,). Returns :class:`Voxels` in hash order
+    (deterministic). A non-positive or non-finite voxel size gives an empty result.
     """
     points = jnp.asarray(points)
     if points.ndim != 2 or points.shape[-1] != 3:
@@ -258,13 +247,9 @@ def adaptive_voxel_size(points, valid=None, resolution: float = 100.0):
 
 def voxel_pyramid(points, voxel_size, num_levels: int, valid=None, features=None,
                   capacities: tuple[int, ...] | None = None) -> tuple[Voxels, ...]:
-    """Octree-like levels: level ``l`` has voxels of ``voxel_size * 2**l``, all on one grid origin.
-
-    Level 0 is :func:`voxel_downsample` of the input; level ``l + 1`` merges the 2x2x2 children of
-    level ``l`` (integer keys halved, means weighted by point counts), so every level equals a direct
-    downsample of the input with that voxel size and the common origin ``min - voxel_size / 2``.
-    capacities: static per-level sizes (default n each).
-    Returns a tuple, finest first.
+    """Octree-like levels, finest first: level ``l`` has voxels of ``voxel_size * 2**l`` on one grid origin.
+    Level ``l + 1`` merges the 2x2x2 children of level ``l`` (count-weighted), which equals a direct
+    downsample of the input; capacities: static per-level sizes (default n each).
     """
     points = jnp.asarray(points)
     n = points.shape[0]

@@ -1,27 +1,16 @@
 """CogniMap3D's factor graph: batched residual functions over padded index arrays (jaxls style).
 
-The objective (paper, Sec. "factor graph"), in GTSAM's convention (a ½ on squared terms, Huber
-``ρ(x) = x²/2`` for ``x ≤ k`` else ``k x − k²/2`` on the whitened residual norm ``x``)::
+The objective (paper, "factor graph"), GTSAM's convention (Huber ``ρ`` on the whitened norm)::
 
     C(T, L) = ½|f_prior|² + Σ_k w_k ρ(|f_proj,k|) + ½ Σ_i |f_motion,i|²
     f_prior  = (T_0 ⊖ T_0^init) / σ_prior                              (6,)  gauge fixing
     f_proj   = (π(T_i, L_j) − z_ij) / σ_ij,  σ_ij² ← α σ_ij² for memory landmarks   (2,)
-    f_motion = ((T_a^{-1} T_b) ⊖ (T_a^{0 -1} T_b^0)) / σ_motion, (a, b) = (0, i) (or (i−1, i))  (6,)
+    f_motion = ((T_a^{-1} T_b) ⊖ (T_a^{0 -1} T_b^0)) / σ_motion  (6,)
 
-Poses ``T`` are cam_to_world 4x4, landmarks ``L`` world points (3,), ``π`` the pinhole projection
-of :mod:`cm3d.ops.camera` (pixels ``(u, v)``), ``a ⊖ b = log(b^{-1} a)`` with jaxlie's tangent
-order (translation first). Every factor family is a frozen pytree of arrays with a leading factor
-axis, padded to a capacity with ``weight = 0``; residuals and Jacobians are computed for all slots
-at once (``vmap``-free broadcasting), padding contributes nothing.
-
-Jacobians are taken with respect to the right perturbation ``T exp(ξ)`` (what :mod:`cm3d.solvers.lm`
-retracts with): analytic for the projection hot path (:func:`projection_linearize`) and for the
-pose factors (:func:`pose_factor_jacobians`, ``J_r^{-1}`` via :func:`jlog`; its ``"autodiff"``
-variant takes ``jax.jacfwd`` through ``exp``/``log``).
-
-Also here: the paper's graph builder (:func:`build_graph`), adaptive outlier rejection
-(:func:`reject_outliers`), SVD re-orthonormalisation (:func:`orthonormalize_poses`) and a seeded
-random bundle-adjustment problem for tests and benchmarks (:func:`random_problem`).
+Poses cam_to_world 4x4, landmarks world (3,), ``π`` the pinhole of :mod:`cm3d.ops.camera`,
+``a ⊖ b = log(b^{-1} a)`` in jaxlie's order (translation first). Factor families are pytrees with
+a leading slot axis, padded with ``weight = 0``. Jacobians are w.r.t. the right perturbation
+``T exp(ξ)``. Entry points: :func:`build_graph`, :func:`total_cost`, :func:`reject_outliers`.
 """
 
 from __future__ import annotations
@@ -295,10 +284,8 @@ def ad(xi):
 
 def jlog(E: jaxlie.SE3):
     """``d log(E exp ξ)/dξ`` at 0, i.e. ``J_r^{-1}(log E)`` (..., 6, 6), differentiable everywhere.
-
-    jaxlie's ``jlog`` (used for rotations above 0.01 rad) has a NaN derivative at the identity
-    and loses digits near it; below, the series ``I + ad/2 + ad²/12 − ad⁴/720`` (error
-    ``O(|ξ|⁶/30240)``) is used, with the double-``where`` so that no branch produces NaN.
+    jaxlie's ``jlog`` has a NaN derivative at the identity, so below 0.01 rad the series
+    ``I + ad/2 + ad²/12 − ad⁴/720`` is used (double ``where``, no NaN branch).
     """
     xi = E.log()
     small = jnp.sum(xi[..., 3:] ** 2, -1) < 1e-4
@@ -413,19 +400,11 @@ def with_point_prior(graph: FactorGraph, target, sqrt_info, weight) -> FactorGra
 class GraphConfig:
     """Noise model of the paper's graph. Units: pixels, radians, and the poses' length unit.
 
-    sigma_proj: reprojection std (px); huber_k: Huber threshold in std units; memory_alpha: the
-    covariance scale of memory-landmark projections (0 < α < 1); prior_sigma_*: the gauge prior on
-    the first pose (tight); motion_sigma_*: std of the relative-motion factors from the initial
-    (foundation-model) poses; motion_pairs: which pose pairs get them (static: sets the number of
-    factor slots, :func:`motion_pairs`):
-
-    * ``"consecutive"`` (default): the paper's chain ``T_{i−1}^{-1} T_i`` (a random-walk model);
-    * ``"anchor"``: from the first pose (the window's anchor) to every other pose, ``T_0^{-1} T_i``
-      against ``T_0^{0 -1} T_i^0``. The foundation model's pose errors are independent per frame,
-      not a random walk, so each pose is held near its prior placement relative to the anchor with
-      the same σ at every distance from it; a consecutive chain lets a coherent pull (tracks on a
-      mover the motion cue missed) accumulate into a drift of ``σ √i`` (docs/factor_graph.md);
-    * ``"both"``: the two sets (2 (N − 1) slots).
+    sigma_proj: reprojection std (px); huber_k: Huber threshold in std units; memory_alpha: covariance
+    scale of memory-landmark projections (0 < α < 1); prior_sigma_*: the gauge prior on the first pose;
+    motion_sigma_*: std of the relative-motion factors from the initial poses; motion_pairs (static):
+    ``"consecutive"`` the paper's chain ``T_{i−1}^{-1} T_i``, ``"anchor"`` ``T_0^{-1} T_i`` (the prior's
+    errors are per frame, not a random walk; docs/factor_graph.md), ``"both"``.
     """
 
     sigma_proj: float = 1.0
@@ -510,11 +489,8 @@ def build_graph(init_poses, intrinsics, pose_idx, point_idx, uv, valid, memory=N
 
 
 def orthonormalize_poses(poses):
-    """Poses (..., 4, 4) with rotations re-orthonormalised by SVD (paper: after solving).
-
-    The value is the SVD projection; the derivative passes straight through (the correction is
-    a round-off-sized, non-differentiable fix: SVD derivatives are singular at repeated singular
-    values, which an orthonormal matrix has).
+    """Poses (..., 4, 4) with rotations re-orthonormalised by SVD (paper: after solving). The derivative
+    passes straight through (SVD derivatives are singular at repeated singular values).
     """
     fixed = se3.orthonormalize_pose(jax.lax.stop_gradient(poses))
     return poses + jax.lax.stop_gradient(fixed - poses)
@@ -565,14 +541,11 @@ def random_problem(seed: int, num_poses: int, num_points: int, obs_per_point: in
                    pixel_noise: float = 1.0, outlier_frac: float = 0.02, pose_noise: float = 0.02,
                    point_noise: float = 0.05, cfg: GraphConfig = GraphConfig(),
                    obs_capacity: int | None = None, width: int = 640, height: int = 480):
-    """A video-like bundle-adjustment problem with the paper's factors (host, numpy).
+    """A video-like bundle-adjustment problem with the paper's factors (host, numpy; tests, benchmarks).
 
-    Cameras move along a gentle arc looking at a cloud of points 3–6 units ahead; each landmark
-    is seen by ``obs_per_point`` consecutive cameras (tracks), with Gaussian pixel noise and a
-    fraction of gross outliers (uniform 10–40 px). The initial poses (prior and motion-factor
-    source) are the truth perturbed by ``pose_noise`` (rad / units, i.i.d. per pose after the
-    first), landmarks by ``point_noise``. Returns (graph, init Variables, truth Variables) as
-    float64 numpy-backed jax arrays when x64 is on.
+    Cameras on a gentle arc, landmarks 3–6 units ahead seen by ``obs_per_point`` consecutive cameras,
+    Gaussian pixel noise plus ``outlier_frac`` gross outliers (10–40 px); initial poses and landmarks
+    are the truth perturbed by ``pose_noise`` / ``point_noise``. Returns (graph, init, truth Variables).
     """
     rng = np.random.default_rng(seed)
     N, M = num_poses, num_points
