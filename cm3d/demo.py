@@ -1,9 +1,8 @@
 """``cm3d demo``: the whole pipeline on the embedded multi-visit synthetic world, with one memory.
 
-Renders ``visits`` visits of one scene (VGGT-like priors at moderate noise: 3° / 3 cm RMS pose
-error), runs :func:`cm3d.pipeline.run` over them threading one memory bank, prints prior vs refined
-metrics per visit and each window's memory decision, and writes every output of ``cm3d run`` per
-visit (``OUT/visitNN/``) plus the bank (``OUT/memory.cm3d``).
+Renders ``visits`` visits of one scene (VGGT-like priors, 3° / 3 cm RMS pose error), runs
+:func:`cm3d.pipeline.run` over them with one bank, prints metrics and window decisions, and writes
+``cm3d run``'s outputs per visit (``OUT/visitNN/``) plus the bank (``OUT/memory.cm3d``).
 """
 
 from __future__ import annotations

@@ -1,18 +1,12 @@
 """Long videos: overlapping, separately normalised chunks stitched into one trajectory.
 
-Modules, in pipeline order: :mod:`~cm3d.long_video.layout` (chunk checks, frame ranges, overlaps),
-:mod:`~cm3d.long_video.overlap` (Sim(3) per boundary from the shared frames),
-:mod:`~cm3d.long_video.fuse` (place and fuse into one sequence), :mod:`~cm3d.long_video.frame_graph`
-(whole-trajectory refinement), :mod:`~cm3d.long_video.stitch` (:func:`stitch_chunks`,
-:func:`naive_stitch`), :mod:`~cm3d.long_video.pose_graph` (Sim(3) pose graph over the chunks),
-:mod:`~cm3d.long_video.memory_loops` (memory recalls as loop closures, :func:`stitch_with_memory`),
-:mod:`~cm3d.long_video.chunk_files` (every chunk in one ``.npz``). Poses are cam_to_world 4x4
-(:mod:`cm3d.ops.se3`); host bookkeeping (chaining, placing, fusing poses) is NumPy float64, the
-jitted fits and solves run in the inputs' JAX dtype (float32 by default).
+Modules in pipeline order: ``layout`` (chunk checks, ranges, overlaps), ``overlap`` (Sim(3) per
+boundary), ``fuse`` (place and fuse), ``frame_graph`` (whole-trajectory refinement), ``stitch``,
+``pose_graph`` (Sim(3) graph over chunks), ``memory_loops`` (recalls as loop closures),
+``chunk_files``. Host bookkeeping is NumPy float64; jitted fits run in the inputs' dtype.
 
     chunks = load_chunks(["c0.npz", "c1.npz", ...])   # or load_chunks("all.npz") with a `chunk` key
     res = stitch_chunks(chunks, overlap=None, config=StitchConfig(), static=None, refine=True)
-    res.sequence, res.poses_aligned, res.boundaries, res.summary()
     base = naive_stitch(chunks)                          # the baseline, also a StitchResult
     mem = stitch_with_memory(chunks, bank=None)          # memory recall across chunks + Sim(3) pose graph
 """

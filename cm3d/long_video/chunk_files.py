@@ -1,9 +1,7 @@
 """Chunk files: every chunk of a long video in one ``.npz``, and back.
 
-The file holds the chunks' frames concatenated in order (shared frames repeated) in the sequence
-format (:mod:`cm3d.data.io`) plus a ``chunk`` key, (S_total,) int, the chunk index of each frame
-(0, 1, ... in non-decreasing order). ``gt_flow`` pairs that straddle two chunks are zeros; the
-file's meta is ``{"chunks": [meta of chunk 0, meta of chunk 1, ...]}``.
+The chunks' frames concatenated (shared frames repeated) in the sequence format plus a ``chunk``
+key (S_total,) int, non-decreasing; meta is ``{"chunks": [meta_k, ...]}``.
 """
 
 from __future__ import annotations
@@ -20,10 +18,7 @@ from cm3d.long_video.layout import StitchError, check_chunks
 
 
 def concat_chunks(chunks) -> tuple[Sequence, np.ndarray]:
-    """Chunks concatenated frame by frame (shared frames repeated) -> (Sequence, chunk index (S_total,)).
-
-    ``gt_flow`` pairs straddling two chunks are zeros; meta is ``{"chunks": [meta_k, ...]}``.
-    """
+    """Chunks concatenated frame by frame -> (Sequence, chunk index (S_total,)); straddling ``gt_flow`` is 0."""
     chunks = check_chunks(chunks)
     idx = np.concatenate([np.full(c.num_frames, k, np.int64) for k, c in enumerate(chunks)])
     cat = lambda xs: np.concatenate(xs)  # noqa: E731

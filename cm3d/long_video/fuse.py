@@ -1,10 +1,8 @@
 """Placing chunks by Sim(3)s and fusing them into one sequence with one entry per frame.
 
-Chunk k placed by ``G_k = [s R, t]``: its poses become ``[R R_i, s R t_i + t]``, its depths
-``s d``. A shared frame blends both chunks' copies with weights ramping across the overlap
-(:func:`cm3d.long_video.layout.blend_weights`): weighted translation, chordal rotation mean, depth,
-confidence and intrinsics, so the trajectory has no step at a boundary. Host NumPy: poses in
-float64, maps in float32.
+``G_k = [s R, t]`` maps chunk k's poses to ``[R R_i, s R t_i + t]`` and depths to ``s d``; shared
+frames are blended with weights ramping across the overlap, so there is no step at a boundary.
+Host NumPy: poses float64, maps float32.
 """
 
 from __future__ import annotations
@@ -35,13 +33,11 @@ def _orthonormalize(M):
 
 
 def fuse_frames(frame, weight, poses, depth, conf, intrinsic, *, num_frames: int):
-    """Fuse per-chunk copies of frames into one per frame.
+    """Fuse per-chunk copies of frames into one per frame -> (poses, depth, conf, intrinsic).
 
-    frame (N,) int global frame of each copy; weight (N,) >= 0 summing to 1 per frame; poses
-    (N, 4, 4) in the common frame; depth (N, H, W) common units, conf (N, H, W), intrinsic
-    (N, 3, 3). Poses: weighted translation and chordal rotation mean; depth: weighted mean over the
-    copies with positive depth (0 when none); confidence and intrinsics: weighted means.
-    -> (poses, depth, conf, intrinsic) of (num_frames, ...).
+    frame (N,) global frame of each copy; weight (N,) summing to 1 per frame; poses (N, 4, 4) common
+    frame; depth, conf (N, H, W); intrinsic (N, 3, 3). Weighted translation, chordal rotation mean,
+    depth over the copies with positive depth, weighted confidence and intrinsics.
     """
     def seg(x):
         out = np.zeros((num_frames,) + x.shape[1:], x.dtype)

@@ -1,13 +1,9 @@
 """Chunk layout of a long video: validation, global frame ranges, overlaps, blend weights.
 
-Chunks are given in temporal order and chunk k's first ``o_k`` frames are chunk k-1's last ``o_k``
-frames. ``overlap`` is one int for every boundary, or None to infer each ``o_k`` from timestamps
-(the leading timestamps of chunk k that chunk k-1's last ``o_k`` timestamps repeat, to a quarter of
-the frame interval). Constraints: ``1 <= o_k < len(chunk k)`` and ``o_k + o_{k+1} <= len(chunk k)``
-(no frame in three chunks); every chunk has the same image size. The merged timestamps are the
-chunks' when they agree on the shared frames, else frame indices 0..S-1. Problems raise
-:class:`StitchError` (a ``ValueError``) naming the chunk and field; a malformed chunk raises
-:class:`cm3d.data.io.SequenceFormatError` naming ``chunks[k]`` and the key.
+Chunk k's first ``o_k`` frames are chunk k-1's last ``o_k``; ``overlap`` is one int, or None to infer
+each ``o_k`` from repeated timestamps. Constraints: ``1 <= o_k < len(chunk k)``, no frame in three
+chunks, one image size. Problems raise :class:`StitchError` (a ``ValueError``) naming the chunk and
+field, or :class:`cm3d.data.io.SequenceFormatError` for a malformed chunk.
 """
 
 from __future__ import annotations
@@ -59,12 +55,8 @@ def _frame_interval(chunks) -> float:
 
 
 def chunk_layout(chunks, overlap: int | None = None):
-    """Global frame ranges of the chunks and the overlap of each boundary.
-
-    overlap: one int for every boundary, or None to infer each from timestamps (module docstring).
-    Returns (ranges: tuple of (start, stop), overlaps: tuple of K-1 ints, timestamps (S,) float64
-    merged: the chunks' when consistent, else 0..S-1) as a :class:`ChunkLayout`. Raises
-    :class:`StitchError`.
+    """Global frame ranges of the chunks and the overlap of each boundary -> :class:`ChunkLayout`
+    (ranges, overlaps, merged timestamps: the chunks' when consistent, else 0..S-1).
     """
     chunks = check_chunks(chunks)
     K = len(chunks)

@@ -1,10 +1,8 @@
 """The Sim(3) pose graph over chunk transforms: overlap constraints plus loop closures.
 
-Every consecutive overlap gives ``G_{k-1}^{-1} G_k ≈ A_k`` and every kept loop closure
-``G_other^{-1} G_chunk ≈ T``; :func:`cm3d.solvers.sim3_pose_graph.solve` solves them on the Sim(3)
-chart ``(ω, t, log s)``, so scale is a variable and a loop corrects the chain's scale drift. A loop
-whose discrepancy with the chain is implausible (χ², the usual loop-closure consistency check) is
-left out.
+Overlaps give ``G_{k-1}^{-1} G_k ≈ A_k``, kept loops ``G_other^{-1} G_chunk ≈ T``; solved on the
+chart ``(ω, t, log s)`` (:mod:`cm3d.solvers.sim3_pose_graph`), so a loop corrects scale drift. A loop
+inconsistent with the chain (χ² test) is left out.
 """
 
 from __future__ import annotations
@@ -22,12 +20,10 @@ from cm3d.ops import robust
 class PoseGraphConfig:
     """The Sim(3) pose graph over chunk transforms (:func:`sim3_pose_graph`).
 
-    sigma_rot (rad), sigma_trans (chunk 0's units), sigma_scale (log scale): noise of a consecutive
-    overlap constraint; loop_factor: loop constraints (memory recalls: one window's cloud
-    registration against a whole overlap's pixels) get sigmas this many times larger
-    (docs/long_video.md: why 20); max_steps: LM steps; loop_quantile: a loop constraint is kept only
-    when ``|r|² <= χ²_q(7)``, ``r`` whitened by the chain's accumulated noise plus the loop's own
-    (1 keeps every loop)."""
+    sigma_rot (rad), sigma_trans (chunk 0's units), sigma_scale (log scale): noise of an overlap
+    constraint; loop_factor: loop sigmas are this many times larger (docs/long_video.md: why 20);
+    max_steps: LM steps; loop_quantile: keep a loop when ``|r|² <= χ²_q(7)`` (1 keeps every loop).
+    """
 
     sigma_rot: float = 0.01
     sigma_trans: float = 0.01
@@ -51,12 +47,11 @@ class PoseGraphConfig:
 
 @dataclasses.dataclass(frozen=True)
 class LoopClosure:
-    """A memory recall across chunks: a window of ``chunk`` (its frames, chunk-local) recalled a map
-    that a window of ``other`` (``other_frames``) created; ``transform`` (4, 4) is the Sim(3) from
-    ``chunk``'s frame into ``other``'s; inliers / rmse: the verification's ICP facts. ``measured``:
-    the memory's own transform (between the two windows' *refined* frames) when ``transform`` was
-    re-expressed between the chunks' prior frames
-    (:func:`cm3d.long_video.memory_loops.loop_to_prior_frames`), else None."""
+    """A memory recall across chunks: a window of ``chunk`` (its frames) recalled a map that a window
+    of ``other`` (``other_frames``) created; ``transform`` (4, 4) Sim(3) ``chunk``'s frame -> ``other``'s;
+    inliers / rmse: ICP facts; ``measured``: the memory's own transform between refined frames when
+    ``transform`` was re-expressed between prior frames, else None.
+    """
 
     chunk: int
     other: int
@@ -71,10 +66,9 @@ class LoopClosure:
 def sim3_pose_graph(G0, A, loops=(), cfg: PoseGraphConfig = PoseGraphConfig()):
     """Refine the chunk transforms ``G_k`` (chunk k -> common frame, Sim(3), ``G_0 = I``).
 
-    G0 (K, 4, 4) the initial transforms (e.g. the chain of A); A (K, 4, 4) with A[k] chunk k -> chunk
-    k-1 (A[0] unused); loops: :class:`LoopClosure` list, sigmas ``cfg.loop_factor`` x the overlap
-    sigmas. Without a kept loop the chain of A is returned (it satisfies every overlap constraint).
-    Returns (G (K, 4, 4) float64, facts dict)."""
+    G0 (K, 4, 4) initial transforms; A (K, 4, 4), A[k] chunk k -> k-1; loops: :class:`LoopClosure`
+    list. Without a kept loop the chain of A is returned. Returns (G (K, 4, 4) float64, facts dict).
+    """
     from cm3d.solvers import sim3_pose_graph as spg
 
     G0 = np.asarray(G0, np.float64)

@@ -1,21 +1,11 @@
 """Motion cues: which pixels of frame t belong to moving objects (CogniMap3D, first stage).
 
-``motion_cues(prior_t, prior_t2, flow, matches, cfg)`` is one pure, jittable and vmappable
-function composed of named stages, each returning its own mask so experiments can score them:
-
-1. ``flow_motion_cue`` (:mod:`.cues`): a K-component GMM on the flow vectors; every pixel outside
-   the component of smallest mean flow magnitude is moving (:mod:`cm3d.ops.gmm`).
-2. ``geometry_motion_cue`` (:mod:`.geometry_cue`): the residual ``|flow − ego_flow|`` under the
-   relative pose re-aligned to the flow (``refine_relative_pose``: robust Gauss–Newton on SE(3)),
-   thresholded by Otsu on log residual above a noise floor.
-3. ``robust_motion_cue`` (:mod:`.keypoint_cue`): candidate regions (4-connected components of the
-   cleaned candidates) holding enough keypoints whose depth-normalised 3D displacement deviates
-   from the static reference's (robust sigmas along and across the viewing ray).
-4. ``baseline_motion_cue``: MonST3R-style fixed threshold on the residual flow, for comparison.
-
-The track cue (:mod:`.track_cue`, ``moving_tracks``) judges the pipeline's landmark tracks over
-several frames. Refinement by seeded segmentation and tracking run on the host: :mod:`cm3d.refine`.
-Conventions: :mod:`cm3d.ops.camera` (cam_to_world poses, forward flow ``F[v, u] = (du, dv)``).
+``motion_cues(prior_t, prior_t2, flow, matches, cfg)`` is pure, jittable and vmappable and returns
+each stage's mask: ``flow_motion_cue`` (GMM on the flow, :mod:`.cues`), ``geometry_motion_cue``
+(residual to the ego flow of the flow-refined relative pose, Otsu, :mod:`.geometry_cue`),
+``robust_motion_cue`` (candidate regions confirmed by keypoints, :mod:`.keypoint_cue`) and the
+MonST3R-style ``baseline_motion_cue``. The track cue (:mod:`.track_cue`) judges landmark tracks over
+several frames; host-side refinement is :mod:`cm3d.refine`. Conventions: :mod:`cm3d.ops.camera`.
 """
 
 # the public API of the motion cues (re-exported)

@@ -41,11 +41,9 @@ class FramePrior:
 class MotionCues:
     """Each stage's mask (H, W) bool and the geometric residual, for one frame pair (t, t2).
 
-    flow_mask: GMM flow cue; geo_mask: residual > geo_threshold; candidates: cleaned candidate
-    regions; robust_mask: candidate regions confirmed by dynamic keypoints; baseline_mask:
-    MonST3R-style fixed threshold; residual (H, W) px, 0 where invalid; valid (H, W) bool;
-    geo_threshold (scalar px); rel_pose (4, 4) refined camera-t to camera-t2 transform;
-    kp_dynamic, kp_valid (N,) bool per match.
+    flow_mask, geo_mask, candidates, robust_mask, baseline_mask: the stages' masks; residual (H, W)
+    px (0 where invalid); valid (H, W); geo_threshold (px); rel_pose (4, 4) refined camera-t ->
+    camera-t2; kp_dynamic, kp_valid (N,) per match.
     """
 
     flow_mask: jnp.ndarray

@@ -1,10 +1,8 @@
 """Geometry cue: the residual between the observed flow and the ego flow of the static scene.
 
-The prior poses are noisy (moderate: 3° / 3 cm RMS, tens of pixels of ego-flow error), so the
-relative pose is first re-aligned to the flow itself (:func:`refine_relative_pose`); the residual
-``|flow − ego_flow|`` is thresholded by Otsu on log residual, never below a noise floor
-``max(floor_px, k · median residual)``. The MonST3R-style baseline thresholds the same residual at
-a fixed 1 px.
+The prior poses are noisy (tens of pixels of ego-flow error), so the relative pose is first
+re-aligned to the flow (:func:`refine_relative_pose`); ``|flow − ego_flow|`` is thresholded by Otsu
+on log residual above a noise floor. The MonST3R-style baseline uses a fixed 1 px.
 """
 
 from __future__ import annotations
@@ -40,12 +38,10 @@ def _lands_inside(flow, margin):
 def refine_relative_pose(depth, K0, K1, flow, rel_init, weight, cfg: MotionConfig = MotionConfig()):
     """Camera-0 to camera-1 pose (4, 4) that best explains ``flow`` on static pixels.
 
-    Minimises ``sum_i w_i rho(|pi(K1 T X_i) - (p_i + F(p_i))|)`` over pixels on a ``pose_stride``
-    grid, ``X_i`` lifted with ``depth``/``K0``; ``rho`` is Geman-McClure with scale
-    ``max(pose_min_scale_px, pose_scale_k * 1.4826 * median residual)``, moving objects being the
-    outliers; ``pose_iters`` damped Gauss-Newton steps ``T <- exp(delta) T`` from ``rel_init``
-    (:func:`cm3d.solvers.camera_motion.fit_camera_motion`, one group).
-    ``weight`` (H, W) >= 0 (0 drops a pixel). Fixed shapes; without valid pixels returns ``rel_init``.
+    Minimises ``sum_i w_i rho(|pi(K1 T X_i) - (p_i + F(p_i))|)`` over a ``pose_stride`` grid, ``X_i``
+    lifted with ``depth``/``K0``, Geman-McClure at a robust scale (movers are the outliers), by
+    ``pose_iters`` Gauss-Newton steps from ``rel_init`` (:func:`cm3d.solvers.camera_motion.fit_camera_motion`).
+    ``weight`` (H, W) >= 0. Without valid pixels returns ``rel_init``.
     """
     s = cfg.pose_stride
     H, W = depth.shape
@@ -65,10 +61,9 @@ def refine_relative_pose(depth, K0, K1, flow, rel_init, weight, cfg: MotionConfi
 def geometry_motion_cue(prior_t: FramePrior, prior_t2: FramePrior, flow, cfg: MotionConfig = MotionConfig()):
     """Residual flow cue -> (mask, residual (H, W) px, valid (H, W), threshold, refined relative pose).
 
-    ``residual = |flow - ego_flow|`` with the ego flow of the prior depth of frame t under the
-    (flow-refined) relative pose; valid where depth is positive, confident enough, and in front of
-    both cameras. Threshold: Otsu (on log residual when ``otsu_log``) of the valid residuals, at
-    least ``max(residual_floor_px, residual_noise_k * median residual)``.
+    ``residual = |flow - ego_flow|`` under the flow-refined relative pose, valid where depth is
+    positive, confident and in front of both cameras. Threshold: Otsu (on log residual when
+    ``otsu_log``), at least ``max(residual_floor_px, residual_noise_k * median residual)``.
     """
     depth, K0, K1 = prior_t.depth, prior_t.intrinsic, prior_t2.intrinsic
     rel = relative_pose(prior_t, prior_t2)

@@ -1,10 +1,7 @@
 """Binary-mask morphology and connected components in JAX (fixed shapes, jittable, vmappable).
 
-Connected components use 4-connectivity and label every pixel of a component with the flat index
-(``v * W + u``) of its first pixel in row-major order, the component's *root*; pixels outside the
-mask get -1. Labels are found by min-label propagation along horizontal and vertical runs with pointer
-jumping inside one ``lax.while_loop`` that stops when nothing changes,
-so a per-region quantity is a scatter into an (H*W,) array indexed by root.
+Components are 4-connected; each pixel is labelled with the flat index (``v * W + u``) of its
+component's first pixel (the *root*), -1 outside, so a per-region quantity is a scatter by root.
 """
 
 from __future__ import annotations
@@ -49,10 +46,8 @@ def _run_ids(mask):
 
 def label_components(mask) -> jnp.ndarray:
     """4-connected component labels (H, W) int32: root flat index per pixel, -1 outside ``mask``.
-
-    Each round takes the minimum label over every horizontal run, then over every vertical run
-    (segment minima), then jumps pointers twice (``L <- L[L]``); rounds repeat inside a
-    ``lax.while_loop`` until no label changes: a handful of rounds for blob-like regions.
+    Min-label propagation along horizontal and vertical runs plus pointer jumping, in a
+    ``lax.while_loop`` until no label changes.
     """
     mask = jnp.asarray(mask, bool)
     H, W = mask.shape

@@ -1,16 +1,10 @@
-"""Handcrafted global descriptors and their hash codes (pure JAX).
+"""Handcrafted global descriptors and their hash codes (pure JAX, masks instead of variable sizes).
 
-- :func:`image_descriptor`: a 2D keyframe descriptor from the static pixels of an image: a soft
-  joint colour histogram, gradient-orientation histograms at two scales and a 2x2 grid of
-  lightness/chroma histograms; each block power- (Hellinger) and L2-normalised, then the whole.
-  Global statistics survive viewpoint change; the grid keeps a little layout.
-- :func:`cloud_descriptor`: a 3D global descriptor of a static point cloud that is invariant to
-  rotation, translation and scale (each VGGT run has its own): histograms of normalised distances
-  to the centroid and between point pairs, the normalised PCA spectrum and the distribution of
-  angles to the principal axis.
+- :func:`image_descriptor`: colour, gradient-orientation and 2x2-grid lightness/chroma histograms
+  of the static pixels, Hellinger- and L2-normalised.
+- :func:`cloud_descriptor`: invariant to rotation, translation and scale: histograms of normalised
+  centroid and pair distances, the PCA spectrum, angles to the principal axis.
 - :func:`hash_codes` / :func:`hamming`: random-hyperplane LSH bits packed in uint32 words.
-
-All functions take validity masks instead of variable-size inputs, so they jit and vmap.
 """
 
 from __future__ import annotations

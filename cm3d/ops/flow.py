@@ -1,9 +1,7 @@
 """Optical flow between consecutive frames (host side, OpenCV).
 
-Convention (same as :func:`cm3d.ops.camera.ego_flow`): forward flow ``F[v, u] = (du, dv)`` sends
-pixel ``(u, v)`` of frame ``t`` to ``(u + du, v + dv)`` in frame ``t + 1``, in pixels, float32.
-OpenCV's ``calcOpticalFlow*(prev, next)`` returns exactly this. A precomputed flow (e.g. RAFT's)
-in the same convention can be passed instead.
+Forward flow ``F[v, u] = (du, dv)`` sends pixel ``(u, v)`` of frame ``t`` to ``(u + du, v + dv)`` in
+frame ``t + 1`` (float32 px), as :func:`cm3d.ops.camera.ego_flow` and OpenCV's ``calcOpticalFlow*``.
 """
 
 from __future__ import annotations

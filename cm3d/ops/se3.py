@@ -1,13 +1,9 @@
 """SE(3)/SO(3) on 4x4 matrices, backed by jaxlie.
 
-Convention (used everywhere in cm3d): a pose is ``cam_to_world`` ``T`` (4x4), so a point in camera
-coordinates maps to the world by ``x_w = R @ x_c + t``. Camera axes are OpenCV's: x right, y down,
-z forward. VGGT's ``extrinsic`` is the inverse, world-to-camera, stored 3x4; convert it with
-:func:`extrinsic_to_cam_to_world` / :func:`cam_to_world_to_extrinsic` at the file boundary only.
-
-Tangent vectors follow jaxlie: ``xi = (v_x, v_y, v_z, w_x, w_y, w_z)``, translation first, and
-``exp(xi)`` is the right-hand perturbation used by ``T @ exp(xi)``. All functions broadcast over
-leading axes.
+A pose is ``cam_to_world`` ``T``: ``x_w = R @ x_c + t``; camera axes OpenCV's (x right, y down, z
+forward). VGGT's ``extrinsic`` (world-to-camera, 3x4) is converted at the file boundary only
+(:func:`extrinsic_to_cam_to_world`). Tangents follow jaxlie, translation first, ``T @ exp(xi)``.
+All functions broadcast over leading axes.
 """
 
 from __future__ import annotations
@@ -43,12 +39,10 @@ def transform_points(T: jnp.ndarray, p: jnp.ndarray) -> jnp.ndarray:
 
 
 def exp(xi: jnp.ndarray) -> jnp.ndarray:
-    """Exponential map, tangent (..., 6) (translation first, as jaxlie) -> pose (..., 4, 4).
-
-    The rotation is jaxlie's ``SO3.exp``; the translation ``V(ω) v`` is computed here:
-    ``V = I + b W + c W²`` with ``b = (1 - cos θ) / θ²``, ``c = (θ - sin θ) / θ³``, Taylor series below
-    θ = 0.1, where the closed forms cancel catastrophically in float32 (jaxlie's ``SE3.exp`` is ~1e-3
-    off for a unit translation at θ ≈ 2e-3 in float32)."""
+    """Exponential map, tangent (..., 6) (translation first) -> pose (..., 4, 4).
+    Rotation by jaxlie's ``SO3.exp``; ``V(ω) v`` here with a Taylor series below θ = 0.1, where the
+    closed form (and jaxlie's ``SE3.exp``) cancels catastrophically in float32.
+    """
     v, w = xi[..., :3], xi[..., 3:]
     th2 = jnp.sum(w * w, -1, keepdims=True)
     small = th2 < 1e-2
@@ -61,12 +55,10 @@ def exp(xi: jnp.ndarray) -> jnp.ndarray:
 
 
 def log(T: jnp.ndarray) -> jnp.ndarray:
-    """Logarithm, pose (..., 4, 4) -> tangent (..., 6) (translation first, as jaxlie).
-
-    The rotation part is jaxlie's ``SO3.log``; the translation part ``V(ω)^{-1} t`` is computed here:
-    ``V^{-1} = I - W/2 + c(θ) W²`` with ``c = (1 - θ sin θ / (2 (1 - cos θ))) / θ²``, a Taylor series
-    below θ = 0.1, where the closed form cancels catastrophically in float32 (jaxlie's ``SE3.log``
-    loses ~1e-3 of a unit translation at θ ≈ 2e-3 in float32)."""
+    """Logarithm, pose (..., 4, 4) -> tangent (..., 6) (translation first).
+    Rotation by jaxlie's ``SO3.log``; ``V(ω)^{-1} t`` here with a Taylor series below θ = 0.1, where the
+    closed form (and jaxlie's ``SE3.log``) cancels catastrophically in float32.
+    """
     w = jaxlie.SO3.from_matrix(T[..., :3, :3]).log()
     t = T[..., :3, 3]
     th2 = jnp.sum(w * w, -1, keepdims=True)

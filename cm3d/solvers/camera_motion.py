@@ -1,13 +1,9 @@
 """Robust fit of rigid camera motions to pixel observations: IRLS Gauss–Newton on SE(3).
 
-Camera points ``X_k`` (K, 3) are moved by their group's transform ``T_g`` (G, 4, 4) and projected
-by a pinhole ``K``; ``Σ_k w_k ρ(|π(K T_g X_k) − z_k| / σ)`` is minimised by damped Gauss–Newton
-steps ``T ← exp(δ) T`` (left perturbation, jaxlie order: translation first) with Geman–McClure
-weights ``1/(1 + (r/σ)²)²`` at a robust scale ``σ`` that the caller recomputes from the current
-residuals. Fixed shapes and a fixed number of steps, so the fit
-compiles once; a group whose step is not finite (or is excluded) keeps its transform.
-Used by the motion cues: one group for the flow-aligned relative pose, one per (seed block, frame)
-for the track cue.
+Minimises ``Σ_k w_k ρ(|π(K T_g X_k) − z_k| / σ)`` over group transforms ``T_g`` (G, 4, 4) of camera
+points ``X_k`` (K, 3), steps ``T ← exp(δ) T`` (left perturbation, translation first), Geman–McClure
+weights at a caller-given robust scale. Fixed shapes and step count; a non-finite step is not
+taken. Used by the motion cues (flow-aligned relative pose, track cue).
 """
 
 from __future__ import annotations

@@ -1,12 +1,9 @@
 """Levenberg–Marquardt on a chain pose graph: SE(3) priors plus motion factors between consecutive
 poses only, so the normal equations are block-tridiagonal and each step is an O(N) solve.
 
-The graph is a :class:`cm3d.solvers.factors.FactorGraph` without landmarks (right perturbations
-``T exp(ξ)``, tangent translation first, as the factor graph). Residuals are exact
-(:func:`cm3d.solvers.factors.pose_residuals`); Jacobians are first order in the residual
-(``J_r^{-1}(log E) ≈ I``): ``I / σ`` for a pose's own perturbation, ``−Ad((T_a^{-1} T_b)^{-1}) / σ``
-for ``T_a``'s. The result carries each factor component's leverage ``h = diag(J (JᵀJ)⁻¹ Jᵀ)`` for
-variance component estimation (redundancy ``1 − h``).
+The graph is a landmark-free :class:`cm3d.solvers.factors.FactorGraph`; residuals are exact,
+Jacobians first order (``J_r^{-1} ≈ I``). The result carries each factor component's leverage
+``h = diag(J (JᵀJ)⁻¹ Jᵀ)`` for variance component estimation (redundancy ``1 − h``).
 """
 
 from __future__ import annotations

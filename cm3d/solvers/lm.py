@@ -1,22 +1,13 @@
-"""Levenberg–Marquardt for bundle-adjustment-shaped factor graphs, in pure JAX.
+"""Levenberg–Marquardt for bundle-adjustment-shaped factor graphs, in pure JAX (:func:`solve`).
 
-Variables are poses on SE(3) (cam_to_world 4x4, retracted ``T ← T exp(δ)``, jaxlie's tangent
-order) and landmarks in R³ (``L ← L + δ``); the factors are those of :mod:`cm3d.solvers.factors`.
-One LM *trial* solves the damped normal equations (:mod:`~cm3d.solvers.normal_equations`) by the
-Schur complement (:mod:`~cm3d.solvers.schur`). λ schedule, step acceptance (model fidelity > 1e-3)
-and stopping rules are GTSAM's ``LevenbergMarquardtOptimizer`` defaults, so the same problem gives
-the same cost history. The loop is one ``lax.while_loop`` whose body evaluates a candidate and
-proposes the next; every array has a fixed capacity (padding has weight 0), so a sweep compiles
-once and the solver is ``vmap``-able. Optional exact-Newton polish steps (``newton_steps``) follow
-the LM phase: IRLS converges only linearly when Huber outliers are present.
-
-Gradients (``LMOptions.backward``): ``"implicit"`` (default) by the implicit function theorem at the
-optimum (:mod:`~cm3d.solvers.newton`; needs a tight forward solve: :data:`IMPLICIT_OPTIONS`),
-``"unrolled"`` (``unroll_steps`` trials in a checkpointed ``lax.scan``) or ``"none"``.
-
-Variables no factor can determine are frozen (δ = 0) instead of producing NaN: landmarks with
-fewer than ``min_observations`` valid observations (their observations are then ignored), poses
-with no factor, and poses marked in ``graph.pose_fixed``.
+Poses on SE(3) (cam_to_world, ``T ← T exp(δ)``, jaxlie order), landmarks in R³ (``L ← L + δ``),
+factors of :mod:`cm3d.solvers.factors`. Each trial solves the damped normal equations by the Schur
+complement (:mod:`~cm3d.solvers.schur`); λ schedule, acceptance and stopping are GTSAM's
+``LevenbergMarquardtOptimizer`` defaults. One ``lax.while_loop`` with fixed capacities: compiles
+once, ``vmap``-able. Optional exact-Newton polish (``newton_steps``): IRLS converges only linearly
+with Huber outliers. Gradients: ``LMOptions.backward`` (``"implicit"``, ``"unrolled"``, ``"none"``).
+Variables no factor determines (landmarks under ``min_observations``, poses without factors,
+``graph.pose_fixed``) are frozen (δ = 0) instead of producing NaN.
 """
 
 from __future__ import annotations
@@ -277,10 +268,9 @@ _solve_implicit.defvjp(_implicit_fwd, implicit_bwd)
 def solve(graph: FactorGraph, init: Variables, options: LMOptions = LMOptions()) -> LMResult:
     """Minimise the factor graph's objective from ``init`` -> :class:`LMResult`.
 
-    graph: :class:`~cm3d.solvers.factors.FactorGraph` (N poses, K projection slots, ...);
-    init: :class:`~cm3d.solvers.factors.Variables` (poses (N, 4, 4), points (M, 3)). Pure and
-    jittable (``options`` static), ``vmap``-able over problems of equal capacities. Gradients of
-    ``result.params`` / ``result.cost`` w.r.t. the graph's float leaves follow ``options.backward``.
+    graph: :class:`~cm3d.solvers.factors.FactorGraph`; init: :class:`~cm3d.solvers.factors.Variables`
+    (poses (N, 4, 4), points (M, 3)). Jittable (``options`` static), ``vmap``-able over equal
+    capacities; gradients w.r.t. the graph's float leaves follow ``options.backward``.
     """
     if options.backward == "implicit":
         return _solve_implicit(options, graph, init)

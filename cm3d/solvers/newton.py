@@ -26,15 +26,11 @@ def newton_damping(lin, options):
 
 
 def exact_newton_solve(graph, st, x, sys: SchurSystem, v, options: LMOptions):
-    """``H^{-1} v`` for the exact Hessian ``H`` of the objective in the tangent space at ``x``:
-    conjugate gradients on Hessian-vector products, preconditioned by the (lightly damped)
-    Gauss–Newton Schur factorisation ``sys``. Inactive variables stay 0.
-
-    ``H v`` is the forward-mode derivative of the analytic gradient along ``v`` (its Gauss–Newton
-    part, the residuals' second derivatives and the robust weights' derivative), cheaper than
-    forward-over-reverse through the objective. It differs from the Hessian of ``δ ↦ C(x ⊕ δ)``
-    by a term proportional to the gradient (the retraction's curvature), which vanishes at the
-    optimum where it is used."""
+    """``H^{-1} v`` for the exact Hessian ``H`` of the objective in the tangent space at ``x``: CG on
+    Hessian-vector products (forward-mode derivative of the analytic gradient), preconditioned by the
+    Gauss–Newton Schur factorisation ``sys``. Inactive variables stay 0. ``H v`` omits the
+    retraction's curvature term, which vanishes at the optimum where it is used.
+    """
     N, M = x.poses.shape[0], x.points.shape[0]
     dt = x.points.dtype
     pa = st.pose_active[:, None].astype(dt)

@@ -1,12 +1,8 @@
 """Damped Schur-complement solves of the LM normal equations ``(H + λI) δ = −g``.
 
-The 3x3 landmark blocks ``C_j`` are eliminated, the reduced camera system
-``S = H_pp + λI − Σ_j E_j^T C_j^{-1} E_j`` is solved, the landmarks are back-substituted:
-
-* dense: ``S`` assembled from the landmarks' observation pairs (``Σ_j n_j (n_j−1)/2`` 6x6 blocks in
-  chunks, not an O(N² M) product) and factored by Jacobi-scaled dense Cholesky;
-* pcg: matrix-free ``S v`` products and block-Jacobi preconditioned conjugate gradients, for pose
-  counts where the O(N³) factorisation dominates (inexact steps).
+The 3x3 landmark blocks are eliminated, ``S = H_pp + λI − Σ_j E_j^T C_j^{-1} E_j`` is solved and
+the landmarks back-substituted. dense: ``S`` from the landmarks' observation pairs, Jacobi-scaled
+Cholesky; pcg: matrix-free ``S v`` with block-Jacobi preconditioned CG (large pose counts).
 """
 
 from __future__ import annotations
