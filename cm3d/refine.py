@@ -55,8 +55,7 @@ def _erode(mask, r):
 def sample_prompts(mask: np.ndarray, per_region: int = 8, seed: int = 0, min_area: int = 1):
     """Prompt points sampled uniformly inside each 8-connected region of ``mask`` (eroded by 2 px when
     possible), at most ``per_region`` each. Returns (points (P, 2) int32 ``(u, v)``, region ids (P,),
-    label image (H, W) int32, 0 = background).
-    """
+    label image (H, W) int32, 0 = background)."""
     import cv2
 
     mask = np.asarray(mask, bool)
@@ -125,11 +124,8 @@ class GrabCutRefiner:
 
 @dataclasses.dataclass(frozen=True)
 class WatershedRefiner:
-    """scikit-image marker watershed on the gradients of gray, log depth and residual flow.
-
-    Markers: each coarse region's interior (eroded by ``core_px``) plus its prompts, and the
-    background beyond a ``band_px`` ring; the boundary settles on the strongest edges in the ring.
-    """
+    """scikit-image marker watershed on the gradients of gray, log depth and residual flow: markers are
+    each region's eroded interior plus prompts and the background beyond a ``band_px`` ring."""
 
     band_px: int = 8
     core_px: int = 4
@@ -162,9 +158,9 @@ class WatershedRefiner:
 
 @dataclasses.dataclass(frozen=True)
 class TrackConfig:
-    """Tracking options. ``support_px``: a warped mask survives where frame t's candidates are
-    within this distance; ``new_region_frac``: a candidate region (fraction of H*W) outside the
-    tracked mask that triggers re-detection; ``prompts_per_region``; ``seed``."""
+    """Tracking options. support_px: a warped mask survives within this distance of frame t's
+    candidates; new_region_frac: an untracked candidate region this large (of H*W) triggers
+    re-detection; prompts_per_region; seed."""
 
     support_px: int = 6
     grow: bool = True  # also seed with the candidate regions that overlap the tracked mask

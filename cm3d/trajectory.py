@@ -49,11 +49,10 @@ class TrackConfig:
 class AssociationConfig:
     """Adaptive association threshold ``τ_dist = max(tau_min, d_scene · ratio)`` (scene units).
 
-    Memory landmarks in :func:`refine_trajectory` (``memory=``): a landmark is associated with the
-    remembered surface when, after the first solve, its nearest map point is within
-    ``max(τ_dist, radius_voxels · voxel)`` and its distance to that point's tangent plane is below
-    ``τ_dist``; it then gets a point-to-plane prior of std ``plane_sigma_ratio · d_scene`` (the
-    landmark lies on the remembered surface)."""
+    With ``memory=`` in :func:`refine_trajectory`, a landmark lies on the remembered surface when its
+    nearest map point is within ``max(τ_dist, radius_voxels · voxel)`` and its tangent-plane distance
+    below ``τ_dist``; its point-to-plane prior has std ``plane_sigma_ratio · d_scene``.
+    """
 
     tau_min: float = 0.01
     ratio: float = 0.01
@@ -63,13 +62,10 @@ class AssociationConfig:
 
 @dataclasses.dataclass(frozen=True)
 class RefineConfig:
-    """Trajectory refinement: the graph's noise model, the solver, the outlier rejection (``rounds``
-    solves with a rejection between them) and the model-selection gate.
+    """Trajectory refinement: noise model, solver, outlier rejection (``rounds`` solves) and the gate.
 
-    gate: keep the prior poses unless refining them explains the observations significantly
-    better: a likelihood-ratio test of "the prior poses are right" (poses held at the prior,
-    landmarks re-estimated) against the refined poses, ``2 ΔC > χ²_q(6 (S − 1))`` with the
-    objective whitened by the configured pixel noise ``sigma_proj``; gate_quantile: q.
+    gate: keep the prior poses unless a likelihood-ratio test (poses held at the prior, landmarks
+    re-estimated, against the refined poses) gives ``2 ΔC > χ²_q(6 (S − 1))``; gate_quantile: q.
     """
 
     graph: factors.GraphConfig = factors.GraphConfig()
@@ -128,8 +124,7 @@ def eligible_pixels(depth, conf, static, cfg: TrackConfig = TrackConfig()):
 
 def select_landmark_pixels(depth, conf, static, cfg: TrackConfig = TrackConfig()):
     """Landmark candidates of one frame: the most confident eligible pixel (:func:`eligible_pixels`) of
-    every cell. depth, conf, static: (H, W). Returns uv (C, 2), valid (C,), ``C = (H // cell) * (W // cell)``.
-    """
+    every cell. depth, conf, static: (H, W). Returns uv (C, 2), valid (C,), ``C = (H // cell) * (W // cell)``."""
     H, W = depth.shape
     c = cfg.cell
     h, w = H // c, W // c
@@ -169,13 +164,11 @@ def bilinear(stack, idx, uv):
 
 def chain_tracks(flow, static, seeds_uv, seeds_valid, seed_frames, cfg: TrackConfig = TrackConfig(),
                  flow_bwd=None) -> Tracks:
-    """Follow seed pixels through the sequence by chaining forward flow.
+    """Follow seed pixels through the sequence by chaining forward flow -> :class:`Tracks` (F * C tracks).
 
-    flow: (S−1, H, W, 2) forward flow (``F[v, u]`` sends frame t to t+1); static: (S, H, W) bool;
-    seeds_uv: (F, C, 2), seeds_valid: (F, C) at keyframes seed_frames (F,); flow_bwd: optional
-    (S−1, H, W, 2) backward flow (frame t+1 to t) for a forward-backward check. A track stops when
-    it leaves the image, lands on a dynamic pixel, fails the check or reaches the last frame.
-    Returns :class:`Tracks` with L = F * C tracks of ``cfg.track_length`` steps.
+    flow: (S−1, H, W, 2) forward flow; static: (S, H, W) bool; seeds_uv: (F, C, 2), seeds_valid: (F, C)
+    at keyframes seed_frames (F,); flow_bwd: optional backward flow for a forward-backward check. A
+    track stops out of the image, on a dynamic pixel, on a failed check or at the last frame.
     """
     S, H, W = static.shape
     F_, C = seeds_valid.shape
@@ -326,8 +319,7 @@ def align_to_surface(points, valid, mem: MemorySurface, cfg: AssociationConfig =
                      iterations: int = 3):
     """The similarity (4, 4) that puts landmarks (L, 3) on the remembered surface (point-to-plane
     Gauss-Newton, Cauchy-weighted at ``τ_dist``, re-associated each iteration; identity below 12).
-    Why: a recalled map is placed from the window's prior-posed cloud; this removes the prior's share.
-    """
+    Why: a recalled map is placed from the window's prior-posed cloud; this removes the prior's share."""
     tau = association_threshold(mem.d_scene, cfg)
     radius = jnp.maximum(tau, cfg.radius_voxels * mem.voxel)
     c = jnp.sum(jnp.where(valid[:, None], points, 0.0), 0) / jnp.maximum(jnp.sum(valid), 1)
@@ -366,9 +358,8 @@ def move_surface(mem: MemorySurface, T) -> MemorySurface:
 
 def memory_point_prior(graph: factors.FactorGraph, points, point_valid, mem: MemorySurface,
                        cfg: AssociationConfig = AssociationConfig(), sigma=None):
-    """``graph`` with point-to-plane priors on the landmarks (L, 3) associated with the remembered
-    surface (:func:`associate_surface`) and their projections flagged as memory (``σ² ← α σ²``).
-    ``sigma``: the priors' std (scene units; default ``cfg.plane_sigma_ratio · d_scene``).
+    """``graph`` with point-to-plane priors on the landmarks (L, 3) on the remembered surface, their
+    projections flagged as memory (``σ² ← α σ²``); ``sigma`` default ``cfg.plane_sigma_ratio · d_scene``.
     Returns (graph, matched (L,))."""
     idx, matched, _ = associate_surface(points, point_valid, mem, cfg)
     n = mem.normals[idx]
@@ -382,13 +373,10 @@ def memory_point_prior(graph: factors.FactorGraph, points, point_valid, mem: Mem
 
 @struct.dataclass
 class Refinement:
-    """Result of :func:`refine_trajectory`: poses (S, 4, 4), points (L, 3), the final LM result,
-    the inlier mask (K,) of the projection factors, the last outlier threshold (px), and the
-    gate's decision (``refined``: the poses are the refined ones) with its test statistic and
-    threshold; ``refined_poses``: the refined poses whatever the gate decided; ``graph``: the final
-    graph (weights after outlier rejection, memory priors); ``memory``: (L,) landmarks held on the
-    remembered surface (all False without ``memory``); ``alignment``: (4, 4) the re-fit of the
-    surface's placement (``realign``)."""
+    """Result of :func:`refine_trajectory`: poses (S, 4, 4) (after the gate), points (L, 3), the final
+    LM result, inlier mask (K,), outlier threshold (px), the gate's decision ``refined`` with its
+    statistic and threshold, ``refined_poses`` whatever the gate said, the final ``graph``, ``memory``
+    (L,) landmarks held on the remembered surface, ``alignment`` (4, 4) the surface re-fit."""
 
     poses: jnp.ndarray
     points: jnp.ndarray
@@ -479,11 +467,8 @@ def prepare_landmarks(depth, conf, static, intrinsics, prior_poses, flow, flow_b
                       track_cfg: TrackConfig = TrackConfig(), memory_bank=None, memory_valid=None,
                       assoc_cfg: AssociationConfig = AssociationConfig()):
     """Keyframe landmarks from static, confident pixels; flow tracks; optional memory association.
-
-    depth, conf: (S, H, W) priors; static: (S, H, W) bool; intrinsics (S, 3, 3); prior_poses
-    (S, 4, 4); flow (and flow_bwd): (S−1, H, W, 2). memory_bank: optional (B, 3) stored landmarks in
-    the prior's frame. Returns (points (L, 3), Observations, Tracks, d_scene).
-    """
+    depth, conf, static (S, H, W); intrinsics (S, 3, 3); prior_poses (S, 4, 4); flow, flow_bwd
+    (S−1, H, W, 2); memory_bank (B, 3). Returns (points (L, 3), Observations, Tracks, d_scene)."""
     S = depth.shape[0]
     kf = keyframes(S, track_cfg)
     uv, ok = jax.vmap(lambda d, c, m: select_landmark_pixels(d, c, m, track_cfg))(depth[kf], conf[kf], static[kf])

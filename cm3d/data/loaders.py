@@ -18,9 +18,8 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
 def load_image_folder(folder) -> Sequence:
-    """``folder/images/*.png|jpg`` (sorted by name) plus ``folder/priors.npz`` holding the sequence
-    keys other than ``images`` (``depth``, ``depth_conf``, ``extrinsic`` or ``cam_to_world``,
-    ``intrinsic``, optional ``timestamps`` and ground truth), e.g. VGGT run on those images."""
+    """``folder/images/*.png|jpg`` (sorted) plus ``folder/priors.npz`` holding the other sequence keys
+    (e.g. VGGT run on those images)."""
     import cv2
 
     folder = Path(folder)

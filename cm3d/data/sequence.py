@@ -1,10 +1,6 @@
 """A video with its per-frame priors (and optional ground truth), as host-side numpy arrays.
-
-This is what loaders produce and what ``prepare`` consumes. Shapes use ``S`` frames of ``H x W``
-pixels. Poses are ``cam_to_world`` 4x4 (see :mod:`cm3d.ops.se3`); the priors live in the prior's
-own frame and scale (VGGT: first camera at the origin, unit mean point distance), the ground truth
-in metric world coordinates.
-"""
+What loaders produce and ``prepare`` consumes. Poses cam_to_world 4x4; priors in the prior's own
+frame and scale (VGGT: first camera at the origin), ground truth in metric world coordinates."""
 
 from __future__ import annotations
 

@@ -1,11 +1,8 @@
 """MPI-Sintel file formats: ``.flo`` flow, ``.dpt`` depth, ``.cam`` cameras; and KITTI flow PNGs.
 
-Layouts (little-endian, row-major), each file starting with the float32 tag 202021.25:
-``.flo``: int32 width, int32 height, then H*W*2 float32 (u, v interleaved); |value| > 1e9 marks
-unknown flow. ``.dpt``: int32 width, int32 height, then H*W float32 depth. ``.cam``: a 3x3 float64
-intrinsic matrix then a 3x4 float64 world-to-camera extrinsic (convert with
-:func:`cm3d.ops.se3.extrinsic_to_cam_to_world`). KITTI flow PNG: 16-bit RGB with
-``u = (R - 2^15) / 64``, ``v = (G - 2^15) / 64``, valid where ``B > 0``.
+Little-endian, row-major, after the float32 tag 202021.25 and (``.flo``, ``.dpt``) int32 width,
+height: ``.flo`` H*W*2 float32 (|v| > 1e9 unknown), ``.dpt`` H*W float32, ``.cam`` 3x3 K and 3x4
+world-to-camera, float64. KITTI PNG: 16-bit, ``u = (R - 2^15) / 64``, ``v`` from G, valid ``B > 0``.
 """
 
 from __future__ import annotations

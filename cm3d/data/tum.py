@@ -1,10 +1,7 @@
 """TUM RGB-D trajectory files: ``timestamp tx ty tz qx qy qz qw`` per line, poses cam_to_world.
 
-The quaternion is Hamilton, unit, stored with ``qw`` last. Reading accepts ``#`` comments (whole line
-or trailing), blank lines and whitespace- or comma-separated values; quaternions are normalised (as
-evo does). Writing uses single spaces and Python's shortest round-trip float formatting (``repr``),
-so a written file reads back bit-exactly for timestamps and translations, and evo can read it.
-Timestamps are not required to be sorted or unique (evo accepts both).
+Hamilton unit quaternions, ``qw`` last. Reading accepts ``#`` comments, blank lines, whitespace or
+commas, and normalises quaternions (as evo). Writing uses ``repr`` floats (an exact round trip).
 """
 
 from __future__ import annotations

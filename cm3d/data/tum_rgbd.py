@@ -1,15 +1,10 @@
 """TUM RGB-D folders as sequences: sensor depth, Open3D RGB-D odometry as the pose prior.
 
-A folder holds ``rgb.txt`` and ``depth.txt`` (``timestamp path`` lines), the PNGs they name (depth
-uint16, metres = value / 5000, 0 = invalid) and optionally ``groundtruth.txt`` (TUM trajectory).
-RGB and depth frames are associated by nearest timestamp (within ``max_diff``); ground-truth poses
-likewise. Intrinsics: the ``K`` argument, else ``intrinsics.txt`` (``fx fy cx cy``) in the folder,
-else the published calibration of the freiburg1/2/3 camera named in the folder's name, else
-TUM's default (525, 525, 319.5, 239.5).
-
-The pose prior chains Open3D's RGB-D odometry between consecutive frames (a real front end that
-runs here); where it fails the previous relative motion is reused and ``meta["odometry_failures"]``
-counts it. The priors are metric (depth from the sensor), so their scale is 1.
+A folder holds ``rgb.txt`` and ``depth.txt`` (``timestamp path``), the PNGs (depth uint16, metres =
+value / 5000, 0 = invalid) and optionally ``groundtruth.txt``; frames are associated by nearest
+timestamp. Intrinsics: ``K``, else ``intrinsics.txt`` (``fx fy cx cy``), else the freiburg1/2/3
+calibration named in the folder name, else TUM's default. The prior chains Open3D's odometry
+(failures reuse the previous motion, counted in ``meta["odometry_failures"]``); metric, scale 1.
 """
 
 from __future__ import annotations

@@ -208,8 +208,7 @@ def fuse_depths(depth, valid, cam_to_world, K, neighbours, weights=None, *, cfg:
 def neighbour_frames(num_frames: int, offsets=(-4, -3, -2, -1, 1, 2, 3, 4)):
     """Host helper: (S, M) int32 neighbour frame indices ``t + o`` for the ``offsets`` (M of them);
     an offset that leaves the video is reflected (``t - o``), and a frame that would repeat or
-    still lie outside is padding (-1).
-    """
+    still lie outside is padding (-1)."""
     import numpy as np
 
     offsets = [int(o) for o in offsets]

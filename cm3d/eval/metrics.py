@@ -23,9 +23,7 @@ from cm3d.solvers.align import umeyama  # noqa: F401  (one implementation, re-ex
 _ALIGN_MODES = ("sim3", "se3", "none")
 
 
-# ----------------------------------------------------------------------------------------------
 # Pose metrics (jnp)
-# ----------------------------------------------------------------------------------------------
 
 
 def _safe_norm(x: jnp.ndarray, axis: int = -1) -> jnp.ndarray:
@@ -69,9 +67,8 @@ def _weighted_rmse(sq_err: jnp.ndarray, w: jnp.ndarray) -> jnp.ndarray:
 def align_trajectory(est_c2w, gt_c2w, mode: str = "sim3", valid=None):
     """Align the estimate (N, 4, 4) to gt (N, 4, 4) by Umeyama on positions -> aligned estimate (N, 4, 4).
 
-    mode: "sim3" (scale + rigid), "se3" (rigid) or "none". The scale multiplies translations only,
-    so the result is a set of rigid poses ``[R R_i, s R t_i + t]``, as evo's ``align``.
-    valid: optional (N,) mask; invalid frames do not influence the fit (they are still transformed).
+    mode: "sim3", "se3" or "none"; the result is rigid poses ``[R R_i, s R t_i + t]`` as evo's
+    ``align``. valid: optional (N,) mask of the frames that enter the fit (all are transformed).
     """
     if mode not in _ALIGN_MODES:
         raise ValueError(f"align mode must be one of {_ALIGN_MODES}, got {mode!r}")
@@ -109,11 +106,8 @@ def _rpe_aligned(aligned, gt, w, delta: int):
 
 
 def ate(est, gt, align: str = "sim3", valid=None):
-    """Absolute trajectory error: RMSE in metres of translation differences after alignment.
-
-    est, gt: cam_to_world (N, 4, 4), associated frame by frame; valid: optional (N,) mask.
-    Returns a scalar (NaN when no frame is valid).
-    """
+    """Absolute trajectory error: RMSE (m) of translation differences after alignment (NaN if none valid).
+    est, gt: cam_to_world (N, 4, 4), associated frame by frame; valid: optional (N,) mask."""
     est = jnp.asarray(est)
     gt = jnp.asarray(gt, dtype=est.dtype)
     w = _weights(est.shape[0], valid, est.dtype)
@@ -158,9 +152,7 @@ def pose_metrics(est, gt, valid=None) -> dict:
 _pose_metrics_jit = jax.jit(pose_metrics)
 
 
-# ----------------------------------------------------------------------------------------------
 # Association and file-level evaluation (host)
-# ----------------------------------------------------------------------------------------------
 
 
 def _match_sorted(short: np.ndarray, long: np.ndarray, max_diff: float):
@@ -207,10 +199,8 @@ def associate(ts_ref, ts_est, max_diff: float = 0.01) -> tuple[np.ndarray, np.nd
 def evaluate_trajectories(gt_ts, gt_c2w, est_ts, est_c2w, max_diff: float = 0.01) -> dict:
     """Associate, then ATE/RPE in float64 -> dict(ate, ate_se3, rpe_trans, rpe_rot: float, pairs: int).
 
-    Association: by timestamp as evo does (:func:`associate`), except when the two trajectories have
-    the same length and no timestamp of one matches any of the other within ``max_diff`` (e.g. the
-    estimate is stamped with frame indices, as MonST3R writes it): then frame i pairs with frame i.
-    Raises ``ValueError`` when fewer than 2 pairs result.
+    By timestamp as evo (:func:`associate`); when both have the same length and no stamp matches
+    (e.g. MonST3R's frame-index stamps) frame i pairs with frame i. ``ValueError`` below 2 pairs.
     """
     gt_ts = np.asarray(gt_ts, np.float64)
     est_ts = np.asarray(est_ts, np.float64)
@@ -240,9 +230,7 @@ def evaluate_trajectory_files(gt_path, est_path, max_diff: float = 0.01) -> dict
     return evaluate_trajectories(gt_ts, gt_c2w, est_ts, est_c2w, max_diff)
 
 
-# ----------------------------------------------------------------------------------------------
 # Depth (jnp)
-# ----------------------------------------------------------------------------------------------
 
 
 def _depth_mask(pred, gt, valid):
@@ -254,11 +242,7 @@ def _depth_mask(pred, gt, valid):
 
 def align_depth_scale_shift(pred, gt, valid=None):
     """Least-squares ``gt ≈ scale * pred + shift`` over all valid pixels of a sequence -> (scale, shift).
-
-    pred, gt: depth (S, H, W) or any equal shape, metres; valid: optional bool mask of that shape,
-    combined with ``gt > 0`` and finiteness. One (scale, shift) for the whole sequence. Constant
-    ``pred`` over the mask gives scale 0 and shift = mean gt; an empty mask gives (NaN, NaN).
-    """
+    Pixels count when valid, ``gt > 0`` and finite; constant ``pred`` gives scale 0; empty gives NaN."""
     pred = jnp.asarray(pred)
     gt = jnp.asarray(gt, dtype=pred.dtype)
     w = _depth_mask(pred, gt, valid).astype(pred.dtype)
@@ -307,9 +291,7 @@ def depth_metrics(pred, gt, valid=None, align: bool = True) -> dict:
     return {"abs_rel": jnp.where(ok, abs_rel, jnp.nan), "delta1": jnp.where(ok, delta1, jnp.nan)}
 
 
-# ----------------------------------------------------------------------------------------------
 # Dynamic masks (jnp)
-# ----------------------------------------------------------------------------------------------
 
 
 def mask_metrics(pred, gt, valid=None) -> dict:
@@ -337,9 +319,7 @@ def mask_metrics(pred, gt, valid=None) -> dict:
     return {"iou": ratio(tp, tp + fp + fn), "precision": ratio(tp, tp + fp), "recall": ratio(tp, tp + fn)}
 
 
-# ----------------------------------------------------------------------------------------------
 # Reconstruction (host)
-# ----------------------------------------------------------------------------------------------
 
 
 def reconstruction_metrics(pred_pts, gt_pts, pred_normals=None, gt_normals=None) -> dict:
@@ -376,9 +356,7 @@ def reconstruction_metrics(pred_pts, gt_pts, pred_normals=None, gt_normals=None)
     return out
 
 
-# ----------------------------------------------------------------------------------------------
-# Additions for the paper-table experiments: median-scaled depth, point-cloud normals
-# ----------------------------------------------------------------------------------------------
+# Median-scaled depth and point-cloud normals (the paper tables)
 
 
 def depth_metrics_median(pred, gt, valid=None) -> dict:

@@ -88,8 +88,7 @@ def _pad(a, n: int, mode: str):
 def frame_pair_points(seq: Sequence, i: int, j: int, flow, step: int = 2, static=None):
     """3D-3D correspondences between frames i and j (host, NumPy float64): every ``step``-th pixel of i
     lifted into camera i (dst) and its flow target lifted with j's depth into camera j (src).
-    Returns (src (P, 3), dst (P, 3), ok (P,)); ``dst ≈ T src`` with ``T`` the Sim(3) cam j -> cam i.
-    """
+    Returns (src (P, 3), dst (P, 3), ok (P,)); ``dst ≈ T src`` with ``T`` the Sim(3) cam j -> cam i."""
     H, W = seq.image_size
     v, u = np.mgrid[step // 2:H:step, step // 2:W:step]
     u, v = u.ravel(), v.ravel()
@@ -115,10 +114,9 @@ def _fit_pairs(src, dst, ok, iterations: int, k: float):
 
 def measure_frame_pairs(seq: Sequence, pairs, static=None, cfg: FrameGraphConfig = FrameGraphConfig(),
                         pad_to: int | None = None) -> PairMeasurements:
-    """Relative Sim(3)s of frame pairs ``(i, j)`` (E, 2) from the images (host optical flow) and the
-    depth maps: the measured ``T_i^{-1} T_j`` with the depth-scale ratio as its scale, by one jitted,
-    vmapped :func:`cm3d.solvers.sim3_irls.robust_sim3` over the pairs (padded to ``pad_to`` pairs
-    so problems of different lengths share one compiled program)."""
+    """Relative Sim(3)s of frame pairs ``(i, j)`` (E, 2) from host optical flow and the depth maps: the
+    measured ``T_i^{-1} T_j`` (scale: the depth ratio), by one jitted, vmapped
+    :func:`cm3d.solvers.sim3_irls.robust_sim3` over pairs padded to ``pad_to``."""
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
     if pairs.shape[0] == 0:
         return PairMeasurements(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0, np.int64), np.zeros(0))
@@ -135,11 +133,9 @@ def measure_frame_pairs(seq: Sequence, pairs, static=None, cfg: FrameGraphConfig
 
 
 def frame_graph(poses, idx_a, idx_b, measured, sigma_motion, sigma_prior, weight=None) -> factors.FactorGraph:
-    """The whole-trajectory pose graph as a :class:`cm3d.solvers.factors.FactorGraph`: one prior
-    per frame at ``poses`` (N, 4, 4) (sigma (N, 6) or (6,), translation first) and one motion factor
-    per measured pair ``T_a^{-1} T_b ≈ measured`` (Q, 4, 4) rigid, sigma (Q, 6) or (6,), weight (Q,)
-    (0 = dropped); no landmarks (one zero-weight projection slot). Every weighted pair must be
-    consecutive (``idx_b = idx_a + 1``). Arrays take ``poses``' dtype."""
+    """The whole-trajectory pose graph as a :class:`~cm3d.solvers.factors.FactorGraph`: a prior per frame
+    at ``poses`` (N, 4, 4), a motion factor per measured consecutive pair (Q, 4, 4); sigmas (., 6) or
+    (6,), translation first; weight (Q,) (0 = dropped); no landmarks. Arrays take ``poses``' dtype."""
     poses = jnp.asarray(poses)
     f = lambda a: jnp.asarray(a, poses.dtype)  # noqa: E731
     N, Q = poses.shape[0], int(np.shape(idx_a)[0])

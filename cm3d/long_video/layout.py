@@ -56,8 +56,7 @@ def _frame_interval(chunks) -> float:
 
 def chunk_layout(chunks, overlap: int | None = None):
     """Global frame ranges of the chunks and the overlap of each boundary -> :class:`ChunkLayout`
-    (ranges, overlaps, merged timestamps: the chunks' when consistent, else 0..S-1).
-    """
+    (ranges, overlaps, merged timestamps: the chunks' when consistent, else 0..S-1)."""
     chunks = check_chunks(chunks)
     K = len(chunks)
     n = [c.num_frames for c in chunks]

@@ -25,8 +25,7 @@ from cm3d.long_video.stitch import StitchResult, centre_noise
 def recall_loops(results, min_gap: int = 2) -> list[LoopClosure]:
     """Loop closures from the pipeline's per-chunk results: every accepted recall of a map created at
     least ``min_gap`` chunks earlier. A map keeps its creator chunk's frame, so the recall's Sim(3)
-    maps the recalling chunk's frame into the creator's.
-    """
+    maps the recalling chunk's frame into the creator's."""
     creator = {}
     loops = []
     for k, res in enumerate(results):
@@ -136,8 +135,7 @@ def stitch_with_memory(chunks, overlap: int | None = None, config: StitchConfig 
 
 def memory_sequence_result(res: StitchResult, chunks):
     """A :class:`cm3d.pipeline.SequenceResult` of the whole video from :func:`stitch_with_memory`, for
-    the output writers: refined trajectory, pose-graph priors, per-frame masks and window records.
-    """
+    the output writers: refined trajectory, pose-graph priors, per-frame masks and window records."""
     from cm3d import pipeline
 
     if res.method != "cm3d-memory":

@@ -50,8 +50,7 @@ class LoopClosure:
     """A memory recall across chunks: a window of ``chunk`` (its frames) recalled a map that a window
     of ``other`` (``other_frames``) created; ``transform`` (4, 4) Sim(3) ``chunk``'s frame -> ``other``'s;
     inliers / rmse: ICP facts; ``measured``: the memory's own transform between refined frames when
-    ``transform`` was re-expressed between prior frames, else None.
-    """
+    ``transform`` was re-expressed between prior frames, else None."""
 
     chunk: int
     other: int

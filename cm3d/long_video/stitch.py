@@ -99,8 +99,7 @@ def stitch_chunks(chunks, overlap: int | None = None, config: StitchConfig = Sti
 def naive_stitch(chunks, overlap: int | None = None, config: StitchConfig = StitchConfig()) -> StitchResult:
     """The common naive stitching: chunk k placed rigidly (SE(3), no scale) on chunk k-1's pose of their
     first shared frame; shared frames keep the earlier chunk's pose and depth. Diagnostics as
-    :func:`stitch_chunks` (scale 1).
-    """
+    :func:`stitch_chunks` (scale 1)."""
     chunks = check_chunks(chunks)
     ranges, overlaps, ts = chunk_layout(chunks, overlap)
     M = [np.eye(4)]

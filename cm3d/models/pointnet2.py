@@ -60,14 +60,12 @@ class PointNet2Config:
 CONFIG = PointNet2Config()
 
 
-# ----------------------------------------------------------------------------------------------
 # Sampling and grouping (fixed shapes, masks)
 
 
 def resample(points, valid, n: int):
     """The valid points (in their order) evenly resampled to ``n`` rows: ``(points (n, 3), ok)``.
-    Index ``i`` takes the ``floor(i * nv / n)``-th valid point; ``ok`` is False for an empty cloud.
-    """
+    Index ``i`` takes the ``floor(i * nv / n)``-th valid point; ``ok`` is False for an empty cloud."""
     points = jnp.where(valid[:, None], jnp.asarray(points, jnp.float32), 0.0)
     order = jnp.argsort(~valid, stable=True)  # valid rows first, in their order
     nv = jnp.sum(valid).astype(jnp.int32)
@@ -107,8 +105,7 @@ def ball_group(centres, points, valid, radius: float, k: int):
     """PointNet++ ball query: for each centre (M, 3) the indices (M, k) of the first ``k`` valid
     points (in index order) within ``radius``; missing slots repeat the first one, and a centre
     with no point in its ball gets its nearest valid point. Also returns the count in the ball (M,).
-    A cumulative count and a binary search per slot (no sort: top-k is slow on CPU).
-    """
+    A cumulative count and a binary search per slot (no sort: top-k is slow on CPU)."""
     d2 = (jnp.sum(centres**2, -1)[:, None] + jnp.sum(points**2, -1)[None, :] - 2.0 * centres @ points.T)
     d2 = jnp.where(valid[None, :], d2, jnp.inf)
     inside = d2 <= radius**2
@@ -120,7 +117,6 @@ def ball_group(centres, points, valid, radius: float, k: int):
     return idx.astype(jnp.int32), n
 
 
-# ----------------------------------------------------------------------------------------------
 # The network
 
 
@@ -187,7 +183,6 @@ def apply(params, points, valid=None, cfg: PointNet2Config = CONFIG):
     return PointNet2(cfg).apply({"params": params}, points, valid)
 
 
-# ----------------------------------------------------------------------------------------------
 # Weights: save / load with a checksum
 
 
@@ -235,8 +230,7 @@ def _read(path: Path):
 
 def load_params(path=None, cfg: PointNet2Config = CONFIG):
     """Parameters (nested dict of float32 numpy arrays) from a weight file (default: the shipped one).
-    Raises :class:`WeightsError` when the file is missing, corrupt, or of another format or architecture.
-    """
+    Raises :class:`WeightsError` when the file is missing, corrupt, or of another format or architecture."""
     path = Path(DEFAULT_WEIGHTS if path is None else path)
     arrays, meta = _read(path)
     if meta.get("format") != FORMAT_VERSION:

@@ -47,8 +47,7 @@ def _run_ids(mask):
 def label_components(mask) -> jnp.ndarray:
     """4-connected component labels (H, W) int32: root flat index per pixel, -1 outside ``mask``.
     Min-label propagation along horizontal and vertical runs plus pointer jumping, in a
-    ``lax.while_loop`` until no label changes.
-    """
+    ``lax.while_loop`` until no label changes."""
     mask = jnp.asarray(mask, bool)
     H, W = mask.shape
     n = H * W

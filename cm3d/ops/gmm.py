@@ -63,8 +63,7 @@ def _features(x, y):
 def _params_from_moments(S: jnp.ndarray, total: jnp.ndarray, reg: jnp.ndarray):
     """Weights, means, covariances from per-component moment sums S (K, 6) (M step). Variances are
     clipped at 0 and floored at ``reg + 1e-6 E[x^2]`` (float32 cancellation), so every covariance is
-    positive definite.
-    """
+    positive definite."""
     nk = S[:, 0] + _EPS
     mx, my = S[:, 1] / nk, S[:, 2] / nk
     exx, eyy = S[:, 3] / nk, S[:, 5] / nk
@@ -91,8 +90,7 @@ def _log_density_coefficients(weights, means, cov):
 
 def _e_step(coef, phi):
     """Log-densities ``coef @ phi`` (K, N) -> (responsibilities (K, N), per-point log-likelihood (N,)).
-    The log-sum-exp over K is unrolled row by row (faster on XLA:CPU).
-    """
+    The log-sum-exp over K is unrolled row by row (faster on XLA:CPU)."""
     logp = coef @ phi
     rows = [logp[k] for k in range(logp.shape[0])]
     m = rows[0]

@@ -1,9 +1,6 @@
 """Keypoint matches between two frames (host side, OpenCV), padded to a fixed capacity.
-
-SIFT (default) or ORB features, brute-force k=2 matching with Lowe's ratio test, best matches
-first, truncated or zero-padded to ``max_matches`` with a validity mask so that jitted stages see
-one shape. Coordinates are pixel ``(u, v)`` (see :mod:`cm3d.ops.camera`).
-"""
+SIFT (default) or ORB, brute-force k=2 matching with Lowe's ratio test, best first, padded to
+``max_matches`` with a validity mask; pixel ``(u, v)`` (:mod:`cm3d.ops.camera`). Also floor keypoints."""
 
 from __future__ import annotations
 
@@ -59,10 +56,8 @@ def _gray(img):
 
 def match_keypoints(img0: np.ndarray, img1: np.ndarray, cfg: KeypointConfig = KeypointConfig(),
                     mask0: np.ndarray | None = None) -> Matches:
-    """Ratio-test matches from ``img0`` to ``img1``, best first, padded to ``cfg.max_matches``.
-
-    ``mask0`` (H, W) bool optionally restricts detection in ``img0``.
-    """
+    """Ratio-test matches from ``img0`` to ``img1``, best first, padded to ``cfg.max_matches``; ``mask0``
+    (H, W) bool optionally restricts detection in ``img0``."""
     import cv2
 
     det, norm = _detector(cfg)
@@ -111,8 +106,7 @@ def detect_features(image: np.ndarray, mask: np.ndarray | None = None, capacity:
                     cfg: KeypointConfig = KeypointConfig(), contrast_threshold: float | None = None) -> Features:
     """Keypoints and descriptors of ``image`` inside ``mask`` (H, W) bool, padded to ``capacity``,
     strongest first. SIFT descriptors are RootSIFT (Euclidean = Hellinger); ORB's 256 bits become
-    +-1/16 (unit L2). ``contrast_threshold``: SIFT's (OpenCV default 0.04).
-    """
+    +-1/16 (unit L2). ``contrast_threshold``: SIFT's (OpenCV default 0.04)."""
     import cv2
 
     if capacity < 1:
@@ -155,7 +149,6 @@ def detect_sequence(images: np.ndarray, masks: np.ndarray | None = None, capacit
     return Features(*(np.stack([getattr(f, k) for f in feats]) for k in ("uv", "desc", "valid")))
 
 
-# ----------------------------------------------------------------------------------------------
 # Floor orthophoto keypoints
 
 
@@ -163,12 +156,11 @@ def detect_sequence(images: np.ndarray, masks: np.ndarray | None = None, capacit
 class FloorConfig:
     """Options of :func:`floor_features`.
 
-    pixels_per_height: orthophoto resolution, the first camera's height above the floor divided by
-    this (a visit's own unit: resolution follows the scene, not the prior's unknown scale);
-    plane_tolerance: a pixel is floor when its depth is within this relative error of the plane's;
-    max_tilt: degrees between the floor normal and the first camera's up (``up_prior``, OpenCV -y);
-    ransac_iterations / stride: plane fit on every ``stride``-th pixel; max_canvas: orthophoto side
-    cap (pixels; the resolution is coarsened to fit); contrast_threshold: SIFT's."""
+    pixels_per_height: orthophoto pixels per first-camera height above the floor (follows the scene,
+    not the prior's unknown scale); plane_tolerance: relative depth error of a floor pixel;
+    max_tilt: degrees between floor normal and the first camera's up (``up_prior``, OpenCV -y);
+    ransac_iterations / stride: plane fit; max_canvas: orthophoto side cap (px); contrast_threshold: SIFT's.
+    """
 
     pixels_per_height: float = 60.0
     plane_tolerance: float = 0.05
@@ -348,8 +340,7 @@ def floor_features(images, depth, K, cam_to_world, static=None, capacity: int = 
                    cfg: FloorConfig = FloorConfig(), seed: int = 0) -> FloorFeatures:
     """SIFT keypoints of the floor orthophoto as 3D points in the frame of ``cam_to_world`` with RootSIFT
     descriptors, the ``capacity`` strongest first (host, NumPy + OpenCV; no floor: none valid).
-    images (S, H, W, 3) uint8, depth (S, H, W), K (S, 3, 3), cam_to_world (S, 4, 4), static (S, H, W).
-    """
+    images (S, H, W, 3) uint8, depth (S, H, W), K (S, 3, 3), cam_to_world (S, 4, 4), static (S, H, W)."""
     import cv2
 
     if capacity < 1:

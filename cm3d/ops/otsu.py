@@ -27,8 +27,7 @@ def _sequential_cumsum(x: jnp.ndarray) -> jnp.ndarray:
 
 def _rounded(p: jnp.ndarray, zero: jnp.ndarray) -> jnp.ndarray:
     """``p`` unchanged, but opaque to the compiler, so XLA:CPU cannot fuse a following ``p + c`` into an
-    FMA (a different rounding from NumPy's); ``zero`` is a runtime int32 zero.
-    """
+    FMA (a different rounding from NumPy's); ``zero`` is a runtime int32 zero."""
     ib = jax.lax.bitcast_convert_type(p, jnp.int32) ^ zero
     return jax.lax.bitcast_convert_type(ib, p.dtype)
 
@@ -89,8 +88,7 @@ def histogram(x, nbins: int = 256, valid=None):
 
 def threshold_from_histogram(counts, centres):
     """Otsu threshold (scalar) of a histogram: the centre maximising the between-class variance
-    (empty end bins skipped, as scikit-image; an all-zero histogram returns ``centres[0]``).
-    """
+    (empty end bins skipped, as scikit-image; an all-zero histogram returns ``centres[0]``)."""
     c = jnp.asarray(counts).astype(jnp.float32)
     centres = jnp.asarray(centres)
     w1 = _sequential_cumsum(c)

@@ -41,8 +41,7 @@ def transform_points(T: jnp.ndarray, p: jnp.ndarray) -> jnp.ndarray:
 def exp(xi: jnp.ndarray) -> jnp.ndarray:
     """Exponential map, tangent (..., 6) (translation first) -> pose (..., 4, 4).
     Rotation by jaxlie's ``SO3.exp``; ``V(ω) v`` here with a Taylor series below θ = 0.1, where the
-    closed form (and jaxlie's ``SE3.exp``) cancels catastrophically in float32.
-    """
+    closed form (and jaxlie's ``SE3.exp``) cancels catastrophically in float32."""
     v, w = xi[..., :3], xi[..., 3:]
     th2 = jnp.sum(w * w, -1, keepdims=True)
     small = th2 < 1e-2
@@ -57,8 +56,7 @@ def exp(xi: jnp.ndarray) -> jnp.ndarray:
 def log(T: jnp.ndarray) -> jnp.ndarray:
     """Logarithm, pose (..., 4, 4) -> tangent (..., 6) (translation first).
     Rotation by jaxlie's ``SO3.log``; ``V(ω)^{-1} t`` here with a Taylor series below θ = 0.1, where the
-    closed form (and jaxlie's ``SE3.log``) cancels catastrophically in float32.
-    """
+    closed form (and jaxlie's ``SE3.log``) cancels catastrophically in float32."""
     w = jaxlie.SO3.from_matrix(T[..., :3, :3]).log()
     t = T[..., :3, 3]
     th2 = jnp.sum(w * w, -1, keepdims=True)

@@ -20,19 +20,14 @@ _MAX_PROBE = 64  # rounds of linear probing before a key counts as overflow (loa
 _CELL_LIMIT = 1 << 30  # integer cell coordinates are clipped to +-this (|p / cell| beyond is garbage)
 
 
-# ----------------------------------------------------------------------------------------------
 # Hash of integer cells
-# ----------------------------------------------------------------------------------------------
 
 
 @struct.dataclass
 class CellHash:
-    """Open-addressing hash of int32 cell triples (capacity ``H``, a power of two).
-
-    slot_item: (H,) id of the item that owns each slot (the smallest id among the items of that
-    key), ``EMPTY`` for free slots. slot_key: (H, 3) the owner's key. max_probe: () probes needed
-    by the longest chain (a lookup never needs more). overflow: () int32, keys left unplaced.
-    """
+    """Open-addressing hash of int32 cell triples (capacity ``H``, a power of two). slot_item (H,): the
+    owner (smallest item id of that key) or ``EMPTY``; slot_key (H, 3); max_probe (): longest chain;
+    overflow (): keys left unplaced."""
 
     slot_item: jnp.ndarray
     slot_key: jnp.ndarray
@@ -63,11 +58,8 @@ def _home(keys: jnp.ndarray, size: int) -> jnp.ndarray:
 
 def hash_insert(keys: jnp.ndarray, active: jnp.ndarray, size: int | None = None):
     """Insert int32 cell triples ``keys`` (n, 3) where ``active`` (n,) -> (CellHash, slot (n,)).
-
-    ``slot[i]`` is the slot holding ``keys[i]`` (``size`` for inactive or overflowing items); equal
-    keys share one slot, owned by the smallest item id. ``size`` (static, a power of two) defaults to
-    :func:`table_size` (n). Deterministic.
-    """
+    Equal keys share one slot (``size`` for inactive or overflowing items); ``size`` (static, a power
+    of two) defaults to :func:`table_size` (n). Deterministic."""
     n = keys.shape[0]
     size = table_size(n) if size is None else int(size)
     if size & (size - 1):
@@ -149,19 +141,16 @@ def masked_bounds(points: jnp.ndarray, valid: jnp.ndarray):
     return jnp.where(anyv, lo, 0.0), jnp.where(anyv, hi, 0.0)
 
 
-# ----------------------------------------------------------------------------------------------
 # Voxel downsampling
-# ----------------------------------------------------------------------------------------------
 
 
 @struct.dataclass
 class Voxels:
     """A voxel-downsampled cloud padded to a static capacity ``C``.
 
-    points: (C, 3) mean point of each voxel; features: (C, F) mean features or None; weight: (C,)
-    number of input points (or their total weight) per voxel; keys: (C, 3) int32 voxel cells;
-    valid: (C,) bool; count: () number of occupied voxels (may exceed C); overflow: () int32
-    voxels (or hash entries) that did not fit. origin: (3,) and voxel_size: () define the cells.
+    points (C, 3) and features (C, F) or None: per-voxel means; weight (C,): points (or weight) per
+    voxel; keys (C, 3) int32 cells; valid (C,); count (): occupied voxels (may exceed C); overflow ():
+    what did not fit; origin (3,) and voxel_size () define the cells.
     """
 
     points: jnp.ndarray
@@ -249,8 +238,7 @@ def voxel_pyramid(points, voxel_size, num_levels: int, valid=None, features=None
                   capacities: tuple[int, ...] | None = None) -> tuple[Voxels, ...]:
     """Octree-like levels, finest first: level ``l`` has voxels of ``voxel_size * 2**l`` on one grid origin.
     Level ``l + 1`` merges the 2x2x2 children of level ``l`` (count-weighted), which equals a direct
-    downsample of the input; capacities: static per-level sizes (default n each).
-    """
+    downsample of the input; capacities: static per-level sizes (default n each)."""
     points = jnp.asarray(points)
     n = points.shape[0]
     if capacities is None:

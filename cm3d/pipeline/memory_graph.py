@@ -170,12 +170,10 @@ def memory_refinement(win: Window, lm_: Landmarks, ref0: trajectory.Refinement, 
 def recall_verify_update(bank: memory.MemoryBank, cursor: MemoryCursor, key, win: Window, lm_: Landmarks,
                          ref: trajectory.Refinement, poses, obs: trajectory.Observations,
                          mem_cfg: memory.MemoryConfig, cfg: PipelineConfig):
-    """The memory's part of a window after its memory-free graph (``ref``, ``poses``): **identify**
-    the refined window merged with the sequence's stored map (:func:`sequence_query`) against the bank
-    without that map; **factor graph with memory** (:func:`memory_refinement`) on the map recalled
-    earlier or just verified, used only when the memory-free refinement passed its gate and the
-    memory its test; **update** the bank with the final window (that map, else the sequence's own,
-    else a new one). Returns (bank, cursor, :class:`MemoryStep`)."""
+    """The memory's part of a window after its memory-free graph (``ref``, ``poses``): **identify** the
+    window merged with its sequence's map (:func:`sequence_query`); **factor graph with memory**
+    (:func:`memory_refinement`), used only when both the gate and the memory's test pass; **update**
+    the bank (the recalled map, else the sequence's own, else a new one). Returns (bank, cursor, MemoryStep)."""
     entry0 = sequence_query(bank, cursor.written, window_entry(win.replace(poses=poses), mem_cfg, cfg), mem_cfg)
     ident = memory.identify(memory.without_map(bank, cursor.written), entry0, mem_cfg, key)
     hit = ident.map_id >= 0

@@ -162,10 +162,9 @@ def rescale_window(poses, points, init_poses, init_points, seed, valid):
 
 
 def factor_graph(win: Window, lm_: Landmarks, cfg: PipelineConfig):
-    """The window's factor graph without memory: tracks checked against the prior
-    (:func:`prior_consistent_tracks`) and the track cue (:func:`cm3d.motion.moving_tracks`), LM with
-    outlier rejection, the gate, the depth-scale gauge. Returns (Refinement, poses, observations,
-    dropped tracks)."""
+    """The window's factor graph without memory: prior check (:func:`prior_consistent_tracks`), track cue
+    (:func:`cm3d.motion.moving_tracks`), LM with outlier rejection, the gate, the depth-scale gauge.
+    Returns (Refinement, poses, observations, dropped tracks)."""
     obs = landmark_observations(lm_, cfg)
     T = cfg.track.track_length
     obs_all_first = obs.valid.reshape(lm_.obs_valid.shape)[:, 0]

@@ -28,7 +28,6 @@ from cm3d.ops import robust, se3
 MIN_DEPTH = 1e-6  # camera z below which a projection is a cheirality failure
 
 
-# ----------------------------------------------------------------------------------------------
 # Data
 
 
@@ -87,10 +86,8 @@ class MotionFactors:
 
 @struct.dataclass
 class PointPriorFactors:
-    """Priors on landmarks ``½ w |S (L − target)|²``, one slot per landmark (M slots): a remembered
-    position (memory landmarks). target: (M, 3); sqrt_info: (M, 3, 3) the whitening ``S`` (square
-    root of the information: ``I / σ`` isotropic, ``[nᵀ / σ; 0; 0]`` point-to-plane, i.e. the
-    landmark lies on a remembered surface); weight: (M,) >= 0 (0 = no prior)."""
+    """Priors on landmarks ``½ w |S (L − target)|²`` (M slots): target (M, 3); sqrt_info (M, 3, 3) the
+    whitening ``S`` (``I / σ`` isotropic, ``[nᵀ / σ; 0; 0]`` point-to-plane); weight (M,) (0 = none)."""
 
     target: jnp.ndarray
     sqrt_info: jnp.ndarray
@@ -99,12 +96,10 @@ class PointPriorFactors:
 
 @struct.dataclass
 class FactorGraph:
-    """The whole problem: per-pose intrinsics (N, 3, 3), the three factor families, the Huber
-    threshold ``huber_k`` (whitened units; ``inf`` = least squares) and the memory covariance
-    scale ``memory_alpha`` (0 < α; α < 1 trusts memory landmarks more). All leaves are arrays, so
-    gradients flow to observations, covariances, weights, ``huber_k`` and ``memory_alpha``.
-    ``pose_fixed`` (N,) bool holds poses at their current value (structure-only solves).
-    ``point_prior``: optional :class:`PointPriorFactors` (None: none, the paper's graph)."""
+    """The whole problem: intrinsics (N, 3, 3), the factor families, the Huber threshold ``huber_k``
+    (whitened; ``inf`` = least squares) and the memory covariance scale ``memory_alpha`` (α < 1 trusts
+    memory landmarks more). All leaves are arrays, so gradients flow to every float. ``pose_fixed``
+    (N,) holds poses (structure-only solves); ``point_prior``: optional :class:`PointPriorFactors`."""
 
     intrinsics: jnp.ndarray
     projection: ProjectionFactors
@@ -120,7 +115,6 @@ class FactorGraph:
         return int(self.intrinsics.shape[-3])
 
 
-# ----------------------------------------------------------------------------------------------
 # Robust kernel
 
 
@@ -144,15 +138,12 @@ def huber_weight(sq_norm, k):
     return jnp.where(outer, k / jnp.where(outer, x, 1.0), 1.0)
 
 
-# ----------------------------------------------------------------------------------------------
 # Projection factor
 
 
 def mm(a, b):
-    """Small batched matmul ``a (..., i, c) @ b (..., c, j)`` as an unrolled sum over ``c``.
-
-    XLA:CPU runs batched dots of 2x3 / 6x3 blocks far slower than fused elementwise code.
-    """
+    """Small batched matmul ``a (..., i, c) @ b (..., c, j)`` unrolled over ``c`` (XLA:CPU runs batched
+    dots of 2x3 / 6x3 blocks far slower than fused elementwise code)."""
     return sum(a[..., :, c, None] * b[..., None, c, :] for c in range(a.shape[-1]))
 
 
@@ -198,11 +189,8 @@ def project(poses, points, K):
 
 
 def projection_residual(graph: FactorGraph, x: Variables):
-    """Whitened reprojection residuals (K, 2) and cheirality validity (K,).
-
-    Behind the camera (z <= MIN_DEPTH) the residual is the constant ``2 f_x / σ`` (GTSAM's
-    ``GenericProjectionFactor`` convention) with zero derivative.
-    """
+    """Whitened reprojection residuals (K, 2) and cheirality validity (K,); behind the camera the
+    residual is the constant ``2 f_x / σ`` with zero derivative (GTSAM's convention)."""
     f = graph.projection
     T = x.poses[f.pose_idx]
     K = graph.intrinsics[f.pose_idx]
@@ -240,7 +228,6 @@ def projection_linearize(graph: FactorGraph, x: Variables):
     return e, A, B, front
 
 
-# ----------------------------------------------------------------------------------------------
 # Pose factors (prior, motion)
 
 
@@ -285,8 +272,7 @@ def ad(xi):
 def jlog(E: jaxlie.SE3):
     """``d log(E exp ξ)/dξ`` at 0, i.e. ``J_r^{-1}(log E)`` (..., 6, 6), differentiable everywhere.
     jaxlie's ``jlog`` has a NaN derivative at the identity, so below 0.01 rad the series
-    ``I + ad/2 + ad²/12 − ad⁴/720`` is used (double ``where``, no NaN branch).
-    """
+    ``I + ad/2 + ad²/12 − ad⁴/720`` is used (double ``where``, no NaN branch)."""
     xi = E.log()
     small = jnp.sum(xi[..., 3:] ** 2, -1) < 1e-4
     A = ad(xi)
@@ -302,10 +288,8 @@ def pose_factor_jacobians(graph: FactorGraph, poses, method: str = "analytic"):
     """Whitened residuals and Jacobians of the pose factors w.r.t. right perturbations ``T exp(ξ)``.
 
     Returns (e_prior (P, 6), J_prior (P, 6, 6), e_motion (Q, 6), J_a (Q, 6, 6), J_b (Q, 6, 6)).
-    ``method="analytic"``: with ``E = target^{-1} T`` (prior) or ``E = measured^{-1} T_a^{-1} T_b``
-    (motion), ``d log(E exp ξ)/dξ = J_r^{-1}(log E)`` (:func:`jlog`) and the left perturbation
-    of ``T_a`` enters through ``−J_r^{-1} Ad((T_a^{-1} T_b)^{-1})``.
-    ``method="autodiff"``: ``jax.jacfwd`` of the residual through ``exp`` (reference).
+    ``"analytic"``: ``d log(E exp ξ)/dξ = J_r^{-1}(log E)`` (:func:`jlog`), and ``T_a`` enters through
+    ``−J_r^{-1} Ad((T_a^{-1} T_b)^{-1})``; ``"autodiff"``: ``jax.jacfwd`` through ``exp`` (reference).
     """
     if method == "autodiff":
         return _pose_factor_jacobians_autodiff(graph, poses)
@@ -344,7 +328,6 @@ def _pose_factor_jacobians_autodiff(graph: FactorGraph, poses):
     return e_p, J_p, e_m, J_a, J_b
 
 
-# ----------------------------------------------------------------------------------------------
 # Cost
 
 
@@ -392,7 +375,6 @@ def with_point_prior(graph: FactorGraph, target, sqrt_info, weight) -> FactorGra
     return graph.replace(point_prior=PointPriorFactors(jnp.asarray(target, dt), jnp.asarray(sqrt_info, dt), weight))
 
 
-# ----------------------------------------------------------------------------------------------
 # The paper's graph
 
 
@@ -484,14 +466,12 @@ def build_graph(init_poses, intrinsics, pose_idx, point_idx, uv, valid, memory=N
                        memory_alpha=jnp.asarray(cfg.memory_alpha, dt), pose_fixed=jnp.zeros(N, bool))
 
 
-# ----------------------------------------------------------------------------------------------
 # After solving: re-orthonormalisation and adaptive outlier rejection
 
 
 def orthonormalize_poses(poses):
     """Poses (..., 4, 4) with rotations re-orthonormalised by SVD (paper: after solving). The derivative
-    passes straight through (SVD derivatives are singular at repeated singular values).
-    """
+    passes straight through (SVD derivatives are singular at repeated singular values)."""
     fixed = se3.orthonormalize_pose(jax.lax.stop_gradient(poses))
     return poses + jax.lax.stop_gradient(fixed - poses)
 
@@ -533,7 +513,6 @@ def reject_outliers(graph: FactorGraph, x: Variables, cfg: OutlierConfig = Outli
     return graph.replace(projection=proj), inlier, tau
 
 
-# ----------------------------------------------------------------------------------------------
 # A seeded bundle-adjustment problem (tests, benchmarks)
 
 

@@ -30,7 +30,6 @@ from cm3d.solvers.normal_equations import (  # noqa: F401
 )
 from cm3d.solvers.schur import SchurSystem, damped_step, factor_dense, schur_solve
 
-# ----------------------------------------------------------------------------------------------
 # The LM loop
 #
 # One loop body evaluates the pending candidate (linearise, accept or reject, update λ) and then
@@ -244,7 +243,6 @@ def _solve_unrolled(graph: FactorGraph, init: Variables, options: LMOptions) -> 
     return _finish(s, options, st)
 
 
-# ----------------------------------------------------------------------------------------------
 # Implicit differentiation
 
 
@@ -261,7 +259,6 @@ def _implicit_fwd(options, graph, init):
 _solve_implicit.defvjp(_implicit_fwd, implicit_bwd)
 
 
-# ----------------------------------------------------------------------------------------------
 # Public entry point
 
 

@@ -26,17 +26,16 @@ class LMOptions:
     damped solve); rel_tol / abs_tol: GTSAM's relative/absolute error decrease tolerances;
     grad_tol: also stop when the Jacobi-scaled gradient ``max_i |g_i| / sqrt(H_ii)`` is at most
     ``grad_tol`` (0 disables); lambda_*: initial value, multiplicative factor and bounds of the
-    damping; min_model_fidelity: accept a step when actual/predicted decrease exceeds it. linear_solver: "dense", "pcg" or "auto" (dense up to
-    ``dense_max_poses`` pose slots); pcg_max_iterations / pcg_tol: inner CG of the "pcg" solver;
-    pair_capacity: static number of landmark observation pairs of the dense Schur assembly
-    (``None``: 8 per observation; :func:`schur_pair_count` gives the exact need);
-    min_observations: landmarks with fewer valid observations are frozen. backward: "implicit",
-    "unrolled" or "none"; unroll_steps: trials of the unrolled mode; implicit_cg_iterations /
-    implicit_cg_tol: adjoint (and Newton) solves; implicit_damping: relative damping of their
-    Gauss–Newton preconditioner; newton_steps: exact-Newton steps after LM (IRLS converges only
-    linearly with Huber outliers; implicit gradients need a tight optimum). batching: how
-    ``vmap`` runs the solver: "native" batches every operation, "sequential" maps the problems one
-    after another inside the program (docs/factor_graph.md), "auto": sequential on CPU.
+    damping; min_model_fidelity: accept a step when actual/predicted decrease exceeds it.
+    linear_solver: "dense", "pcg" or "auto" (dense up to ``dense_max_poses`` pose slots);
+    pcg_max_iterations / pcg_tol: inner CG of "pcg"; pair_capacity: static number of landmark
+    observation pairs of the dense Schur assembly (``None``: 8 per observation; see
+    :func:`schur_pair_count`); min_observations: landmarks with fewer are frozen. backward:
+    "implicit", "unrolled" or "none"; unroll_steps: trials of the unrolled mode;
+    implicit_cg_iterations / implicit_cg_tol: adjoint (and Newton) solves; implicit_damping: of their
+    Gauss–Newton preconditioner; newton_steps: exact-Newton steps after LM (implicit gradients need a
+    tight optimum). batching: "native" batches every operation under ``vmap``, "sequential" maps the
+    problems one after another (docs/factor_graph.md), "auto": sequential on CPU.
     """
 
     max_iterations: int = 100

@@ -1,9 +1,5 @@
 """Exact-Newton solves in the tangent space at an optimum, and the implicit-gradient adjoint.
-
-``H^{-1} v`` with the exact Hessian (Hessian-vector products as the forward-mode derivative of the
-analytic gradient) by conjugate gradients preconditioned by the Gauss–Newton Schur factorisation.
-The Gauss–Newton Hessian alone gives wrong gradients (weak gauge/scale directions).
-"""
+Why the exact Hessian: the Gauss–Newton one alone gives wrong gradients (weak gauge/scale directions)."""
 
 from __future__ import annotations
 
@@ -29,8 +25,7 @@ def exact_newton_solve(graph, st, x, sys: SchurSystem, v, options: LMOptions):
     """``H^{-1} v`` for the exact Hessian ``H`` of the objective in the tangent space at ``x``: CG on
     Hessian-vector products (forward-mode derivative of the analytic gradient), preconditioned by the
     Gauss–Newton Schur factorisation ``sys``. Inactive variables stay 0. ``H v`` omits the
-    retraction's curvature term, which vanishes at the optimum where it is used.
-    """
+    retraction's curvature term, which vanishes at the optimum where it is used."""
     N, M = x.poses.shape[0], x.points.shape[0]
     dt = x.points.dtype
     pa = st.pose_active[:, None].astype(dt)

@@ -49,12 +49,9 @@ def _pair_capacity(graph: FactorGraph, options: LMOptions) -> int:
 
 def structure(graph: FactorGraph, num_points: int, options: LMOptions = LMOptions(),
               with_pairs: bool = True) -> Structure:
-    """Active masks and the landmark observation pairs (jittable, fixed capacity).
-
-    When the graph has more pairs than the capacity (``pair_count > pair_k1.shape[0]``) the pairs
-    are incomplete: :func:`solve` then takes no step and reports stop reason :data:`PAIR_OVERFLOW`
-    (a result, not a host callback, so compiled programs stay cacheable and vmappable).
-    """
+    """Active masks and the landmark observation pairs (jittable, fixed capacity). More pairs than the
+    capacity make :func:`solve` take no step and report :data:`PAIR_OVERFLOW` (a result, not a host
+    callback, so compiled programs stay cacheable and vmappable)."""
     f = graph.projection
     N = graph.intrinsics.shape[0]
     M = num_points

@@ -1,7 +1,6 @@
 """A Sim(3) pose graph: constraints ``G_a^{-1} G_b ≈ M`` on transforms ``G_k = G0_k Exp(δ_k)``
 (chart ``(ω, t, log s)``, :mod:`cm3d.ops.sim3`; δ_0 = 0 is the gauge), solved by optimistix's
-Levenberg–Marquardt (dense: 7 (K-1) unknowns). Scale is a variable, so a loop corrects scale drift.
-"""
+Levenberg–Marquardt (dense: 7 (K-1) unknowns). Scale is a variable, so a loop corrects scale drift."""
 
 from __future__ import annotations
 
