@@ -210,8 +210,7 @@ def radius_neighbors(points, valid=None, *, radius, max_nn: int = 64, max_candid
                            truncated=jnp.sum(trunc).astype(jnp.int32))
 
 
-# ----------------------------------------------------------------------------------------------
-# The sorted layout
+# --- The sorted layout
 
 
 def first_argmin(x, axis: int):

@@ -118,9 +118,7 @@ class TargetIndex:
         return jnp.sum(self.valid)
 
 
-# ----------------------------------------------------------------------------------------------
-# Small helpers
-# ----------------------------------------------------------------------------------------------
+# --- Small helpers
 
 
 def _sq_dist_soa(points, cand, q):
@@ -147,9 +145,7 @@ def _unseen_gap2(q, fk, origin, cell, nfull):
     return jnp.min(jnp.where(unseen, g2, jnp.inf), axis=1)
 
 
-# ----------------------------------------------------------------------------------------------
-# Build
-# ----------------------------------------------------------------------------------------------
+# --- Build
 
 
 def build_target_index(points, valid=None, *, radius: float, k: int = 16, cell_factor: float = 0.7,
@@ -292,9 +288,7 @@ def _empty_index(dtype, radius: float, k: int, max_candidates: int) -> TargetInd
                        radius=radius, k=k)
 
 
-# ----------------------------------------------------------------------------------------------
-# Queries
-# ----------------------------------------------------------------------------------------------
+# --- Queries
 
 
 def _coarse_key(index: TargetIndex, q):
@@ -587,9 +581,7 @@ def exact_nearest(index: TargetIndex, q, m, d2, active, radius, cache: NearestCa
     return pos, dist2, jnp.sum(need).astype(jnp.int32), new
 
 
-# ----------------------------------------------------------------------------------------------
-# Convenience on plain clouds
-# ----------------------------------------------------------------------------------------------
+# --- Convenience on plain clouds
 
 
 def knn_graph(index: TargetIndex):

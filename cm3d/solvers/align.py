@@ -38,9 +38,7 @@ from cm3d.solvers.ransac import ransac
 from cm3d.solvers.umeyama import similarity_matrix, umeyama, umeyama_transform  # noqa: F401  (re-exported)
 
 
-# ----------------------------------------------------------------------------------------------
-# FPFH features
-# ----------------------------------------------------------------------------------------------
+# --- FPFH features
 
 _BINS = 11
 
@@ -104,9 +102,7 @@ def fpfh(points, normals, neighbors: RadiusNeighbors) -> jnp.ndarray:
     return jnp.where((cnt > 0)[:, None], agg.reshape(n, 3 * _BINS) + spfh, 0.0)
 
 
-# ----------------------------------------------------------------------------------------------
-# Global registration
-# ----------------------------------------------------------------------------------------------
+# --- Global registration
 
 
 @dataclasses.dataclass(frozen=True)

@@ -46,7 +46,7 @@ from cm3d.ops.neighbors import (
 from cm3d.ops import sim3
 from cm3d.ops.grid import grid_nearest
 from cm3d.ops.voxel import valid_points
-from cm3d.solvers.umeyama import umeyama, umeyama_transform
+from cm3d.solvers.umeyama import umeyama_transform
 
 __all__ = ["ICPOptions", "ICPResult", "TargetIndex", "build_target_index", "icp", "icp_batch",
            "icp_coarse_to_fine", "icp_grid", "point_to_plane_update", "stack_indices"]
@@ -179,8 +179,7 @@ def point_to_plane_update(q, p, n, inl, o: ICPOptions):
 
 def _update_point_to_point(q, p, inl, o: ICPOptions):
     """Umeyama update (4, 4) of the current correspondences (Open3D's point-to-point estimate)."""
-    s, R, t = umeyama(q, p, inl, o.with_scale)
-    U = sim3.from_parts(s, R, t)
+    U = umeyama_transform(q, p, inl, o.with_scale)
     ok = (jnp.sum(inl) >= 3) & jnp.all(jnp.isfinite(U))
     return jnp.where(ok, U, jnp.eye(4, dtype=q.dtype))
 

@@ -157,8 +157,7 @@ def sim3_consensus(src, dst, hypotheses, score_ok, threshold, scale_range, clust
     return T, sim3.scale(T), best & (score[h] > 0)
 
 
-# ----------------------------------------------------------------------------------------------
-# Global registration's RANSAC
+# --- Global registration's RANSAC
 
 
 def _pose_distance(A, B):
