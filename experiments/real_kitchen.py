@@ -2,7 +2,7 @@
 and memory recall on real revisits, with VGGT-like priors made from the ground truth.
 
     .venv/bin/python experiments/real_kitchen.py [--data DIR] [--segments 160,640,...]
-                                                 [--frames 30] [--resize 0.5] [--level moderate]
+                                                 [--frames 30] [--resize 1.0] [--level moderate]
                                                  [--quick] [--json PATH]
 
 The folder (default ``../shared/data/sevenscenes_redkitchen``, or under ``$CM3D_SHARED_DATA``) is read with
@@ -11,8 +11,8 @@ listed frames, named by its first frame number (the folder holds every 2nd frame
 460-938: 13 segments of 30). Each segment gets its own VGGT-like prior
 (:func:`cm3d.data.priors.make_priors`, level ``--level``, seed = its first frame number): first
 camera at the origin, unknown scale, pose noise + drift, depth jitter, sensor holes kept (depth 0,
-confidence 0). Images are resized by ``--resize`` (0.5: 320x240, the back end at 160x120) so the
-run fits 2 busy cores.
+confidence 0). Images are resized by ``--resize`` (default 1: the sensor's 640x480, the back end
+at 320x240; 0.5: 320x240, 3.5x faster).
 
 Per segment (the pipeline alone on it, a fresh memory bank), against the ground truth:
 
@@ -164,7 +164,7 @@ def main() -> None:
     ap.add_argument("--segments", default=None,
                     help="comma-separated first frame numbers (default: every segment of the folder)")
     ap.add_argument("--frames", type=int, default=30, help="frames per segment")
-    ap.add_argument("--resize", type=float, default=0.5, help="image scale (0.5: 320x240)")
+    ap.add_argument("--resize", type=float, default=1.0, help="image scale (0.5: 320x240)")
     ap.add_argument("--level", default="moderate", choices=list(priors.NOISE_LEVELS))
     ap.add_argument("--quick", action="store_true", help="8-frame segments at 64x48, 1 revisit + 1 distinct pair")
     ap.add_argument("--json", default=None, metavar="PATH")
