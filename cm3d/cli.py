@@ -221,8 +221,8 @@ def _memory(args) -> int:
         print(f"{args.bank}: {int(valid.sum())} of {cfg.max_maps} maps "
               f"(capacity {cfg.max_points} points, {cfg.max_keyframes} keyframes each)")
         for m in np.flatnonzero(valid):
-            print(f"  map {m:3d}: {int(np.asarray(memory.map_cloud(bank, m).valid).sum()):6d} points, "
-                  f"{int(np.asarray(bank.kf_valid[m]).sum()):3d} keyframes, {int(bank.visits[m])} visits")
+            c = memory.map_counts(bank, m)
+            print(f"  map {m:3d}: {c['points']:6d} points, {c['keyframes']:3d} keyframes, {c['visits']} visits")
         return 0
     if args.map_id is None or not (0 <= args.map_id < cfg.max_maps) or not valid[args.map_id]:
         raise ValueError(f"map id: {args.map_id} is not a stored map (valid: {np.flatnonzero(valid).tolist()})")
@@ -231,10 +231,7 @@ def _memory(args) -> int:
         cloud = memory.map_cloud(bank, m)
         pts = np.asarray(cloud.points)[np.asarray(cloud.valid)]
         lo, hi = (pts.min(0), pts.max(0)) if len(pts) else (np.zeros(3), np.zeros(3))
-        print(json.dumps({"map_id": int(m), "points": int(len(pts)), "keyframes": int(np.asarray(bank.kf_valid[m]).sum()),
-                          "keypoints": int(np.asarray(bank.kp_valid[m]).sum()),
-                          "floor_keypoints": int(np.asarray(bank.floor_kp_valid[m]).sum()),
-                          "visits": int(bank.visits[m]), "bounds_min": lo.round(4).tolist(),
+        print(json.dumps({"map_id": int(m), **memory.map_counts(bank, m), "bounds_min": lo.round(4).tolist(),
                           "bounds_max": hi.round(4).tolist()}, indent=1))
         return 0
     memory.save(memory.remove_map(bank, m), args.bank, cfg)

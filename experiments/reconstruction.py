@@ -43,6 +43,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from cm3d import memory  # noqa: E402
 from camera_pose import LEVEL, mean_figures, parse_args, recalled_cell, revisit_runs, write_figures  # noqa: E402
 
 VARIANTS = ("no_memory", "memory", "update")
@@ -109,8 +110,8 @@ def bank_map(bank, result, earlier_only: bool):
         w = written[-1]
         m = w.map_id
         T = np.eye(4) if w.created_map else np.asarray(w.transform, np.float64)
-    ok = np.asarray(bank.point_valid[m])
-    pts = np.asarray(bank.points[m], np.float64)[ok]
+    cloud = memory.map_cloud(bank, m)
+    pts = np.asarray(cloud.points, np.float64)[np.asarray(cloud.valid)]
     return (pts - T[:3, 3]) @ np.linalg.inv(T[:3, :3]).T, bool(acc)
 
 

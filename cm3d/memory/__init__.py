@@ -23,7 +23,9 @@ from cm3d.memory.bank import (
     global_table,
     insert_map,
     map_cloud,
+    map_counts,
     remove_map,
+    stored_entry,
     without_map,
 )
 from cm3d.memory.config import (
@@ -59,7 +61,7 @@ __all__ = [
     "MemoryFullError", "Recall", "Report", "SequenceCloud", "Verification", "acceptance_features",
     "acceptance_score", "add_map", "build_entry", "capacities", "cloud_descriptor", "config_from_dict",
     "downsample_to_capacity", "empty", "even_subsample", "evenly_spread", "fit_keypoints", "global_table",
-    "identify", "insert_map", "keypoint_clusters", "lift_keypoints", "load", "map_cloud", "match_keypoints",
+    "identify", "insert_map", "keypoint_clusters", "lift_keypoints", "load", "map_cloud", "map_counts", "match_keypoints",
     "merge_evenly", "model_accepts", "recall", "relocalize", "remember", "remove_map", "save",
-    "select_keyframes", "sequence_cloud", "up_axis", "update_map", "verify", "without_map",
+    "select_keyframes", "sequence_cloud", "stored_entry", "up_axis", "update_map", "verify", "without_map",
 ]

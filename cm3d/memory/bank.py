@@ -23,7 +23,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from cm3d.memory.config import MemoryConfig, MemoryFullError
-from cm3d.memory.entry import MapEntry, fit_keypoints
+from cm3d.memory.entry import Keypoints, MapEntry, fit_keypoints
 from cm3d.ops import descriptors
 from cm3d.ops.grid import sort_by_cell
 
@@ -83,6 +83,23 @@ def without_map(bank: MemoryBank, map_id) -> MemoryBank:
     """The bank with map ``map_id`` hidden from recall (jittable; ``map_id < 0`` hides nothing)."""
     M = bank.map_valid.shape[0]
     return bank.replace(map_valid=bank.map_valid & (jnp.arange(M) != map_id))
+
+
+def stored_entry(bank: MemoryBank, map_id) -> MapEntry:
+    """Map ``map_id``'s contents as a :class:`MapEntry` at the bank's capacities (jittable)."""
+    m = jnp.maximum(map_id, 0)
+    return MapEntry(points=bank.points[m], normals=bank.normals[m], conf=bank.conf[m], colors=bank.colors[m],
+                    point_valid=bank.point_valid[m], kf_desc=bank.kf_desc[m], kf_valid=bank.kf_valid[m],
+                    cloud_desc=bank.cloud_desc[m], voxel_size=bank.voxel_size[m],
+                    keypoints=Keypoints(bank.kp_points[m], bank.kp_desc[m], bank.kp_valid[m]),
+                    floor_keypoints=Keypoints(bank.floor_kp_points[m], bank.floor_kp_desc[m], bank.floor_kp_valid[m]))
+
+
+def map_counts(bank: MemoryBank, map_id: int) -> dict[str, int]:
+    """What map ``map_id`` holds (host side): points, keyframes, keypoints, floor keypoints, visits."""
+    return dict(points=int(bank.point_valid[map_id].sum()), keyframes=int(bank.kf_valid[map_id].sum()),
+                keypoints=int(bank.kp_valid[map_id].sum()), floor_keypoints=int(bank.floor_kp_valid[map_id].sum()),
+                visits=int(bank.visits[map_id]))
 
 
 def capacities(bank: MemoryBank) -> dict[str, int]:

@@ -122,9 +122,7 @@ def sequence_query(bank: memory.MemoryBank, written, entry: memory.MapEntry, mem
 
     def merged(entry):
         b = memory.update_map(bank, m, entry, jnp.eye(4, dtype=jnp.float32), mem_cfg)
-        stored = ("points", "normals", "conf", "colors", "point_valid", "kf_desc", "kf_valid", "cloud_desc", "voxel_size")
-        return entry.replace(**{k: getattr(b, k)[m] for k in stored},  # keypoints: both at the bank's capacity
-                             keypoints=memory.Keypoints(b.kp_points[m], b.kp_desc[m], b.kp_valid[m]))
+        return memory.stored_entry(b, m).replace(floor_keypoints=entry.floor_keypoints)
 
     return jax.lax.cond(written >= 0, merged, lambda e: e, entry)
 
