@@ -87,8 +87,8 @@ def run_sequence(seq, cfg: motion.MotionConfig, refiner, track_cfg: refine.Track
         for f, x in ((FLOW_J, flows_j), (GEO_J, flows_j), (BASE_J, flows_j)):
             jax.block_until_ready(f(a, b, x, matches, cfg))
     flow_mask, secs["gmm"] = _timed(FLOW_J, a, b, flows_j, matches, cfg)
-    (geo_mask, residual, valid, thr, rel), secs["geo"] = _timed(GEO_J, a, b, flows_j, matches, cfg)
-    geo_in = (flow_mask, geo_mask, valid, rel)
+    geo, secs["geo"] = _timed(GEO_J, a, b, flows_j, matches, cfg)
+    geo_in = (flow_mask, geo.mask, geo.valid, geo.rel_pose)
     if warm:
         jax.block_until_ready(ROBUST_J(a, b, geo_in, matches, cfg))
     robust, secs["robust"] = _timed(ROBUST_J, a, b, geo_in, matches, cfg)

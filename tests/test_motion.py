@@ -43,8 +43,8 @@ def _finite(tree):
 def test_ego_residual_near_zero_on_static_pixels(clean_seq, refine_pose):
     a, b = _pair(clean_seq)
     cfg = dataclasses.replace(CFG, refine_pose=refine_pose, residual_floor_px=0.1)  # tiny images: slow movers
-    geo, residual, valid, thr, rel = jax.jit(motion.geometry_motion_cue, static_argnums=3)(
-        a, b, jnp.asarray(clean_seq.gt.flow[0]), cfg)
+    cue = jax.jit(motion.geometry_motion_cue, static_argnums=3)(a, b, jnp.asarray(clean_seq.gt.flow[0]), cfg)
+    geo, residual, valid = cue.mask, cue.residual, cue.valid
     static = np.asarray(valid) & ~clean_seq.gt.dynamic_mask[0]
     assert static.sum() > 0.5 * static.size
     res = np.asarray(residual)[static]

@@ -12,7 +12,7 @@ several frames; host-side refinement is :mod:`cm3d.refine`. Conventions: :mod:`c
 from cm3d.motion.cues import flow_motion_cue, motion_cues, motion_cues_jit, sequence_motion_cues, warp_mask  # noqa: F401
 from cm3d.motion.frames import FramePrior, MotionConfig, MotionCues  # noqa: F401
 from cm3d.motion.geometry_cue import (  # noqa: F401
-    baseline_motion_cue, ego_flow_rel, geometry_motion_cue, refine_relative_pose, relative_pose
+    GeometryCue, baseline_motion_cue, ego_flow_rel, geometry_motion_cue, refine_relative_pose, relative_pose
 )
 from cm3d.motion.keypoint_cue import (  # noqa: F401
     candidate_regions, dynamic_keypoints, keypoint_displacements, robust_motion_cue, static_reference

@@ -33,7 +33,8 @@ def motion_cues(prior_t: FramePrior, prior_t2: FramePrior, flow, matches,
     if flow.shape != prior_t.depth.shape + (2,):
         raise ValueError(f"motion_cues: flow shape {flow.shape} does not match depth {prior_t.depth.shape}")
     flow_mask, _ = flow_motion_cue(flow, cfg)
-    geo_mask, residual, valid, thr, rel = geometry_motion_cue(prior_t, prior_t2, flow, cfg)
+    geo = geometry_motion_cue(prior_t, prior_t2, flow, cfg)
+    geo_mask, residual, valid, thr, rel = geo.mask, geo.residual, geo.valid, geo.threshold, geo.rel_pose
     candidates, labels = candidate_regions(flow_mask, geo_mask, valid, cfg)
     disp, ray, kp_ok = keypoint_displacements(prior_t, prior_t2, matches, rel, cfg)
     kp_dyn = dynamic_keypoints(disp, ray, kp_ok, cfg, static_reference(labels, matches, kp_ok, cfg))

@@ -7,7 +7,9 @@ on log residual above a noise floor. The MonST3R-style baseline uses a fixed 1 p
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
+from flax import struct
 
 from cm3d.motion.frames import FramePrior, MotionConfig
 from cm3d.ops import camera, robust, se3
@@ -58,8 +60,21 @@ def refine_relative_pose(depth, K0, K1, flow, rel_init, weight, cfg: MotionConfi
     return T[0]
 
 
-def geometry_motion_cue(prior_t: FramePrior, prior_t2: FramePrior, flow, cfg: MotionConfig = MotionConfig()):
-    """Residual flow cue -> (mask, residual (H, W) px, valid (H, W), threshold, refined relative pose).
+@struct.dataclass
+class GeometryCue:
+    """The residual-flow cue of one frame pair: mask, residual (H, W) px, valid (H, W), the Otsu
+    threshold (px) and the flow-refined relative pose (4, 4) camera t -> camera t2."""
+
+    mask: jax.Array
+    residual: jax.Array
+    valid: jax.Array
+    threshold: jax.Array
+    rel_pose: jax.Array
+
+
+def geometry_motion_cue(prior_t: FramePrior, prior_t2: FramePrior, flow,
+                        cfg: MotionConfig = MotionConfig()) -> GeometryCue:
+    """Residual flow cue (:class:`GeometryCue`).
 
     ``residual = |flow - ego_flow|`` under the flow-refined relative pose, valid where depth is
     positive, confident and in front of both cameras. Threshold: Otsu (on log residual when
@@ -81,7 +96,7 @@ def geometry_motion_cue(prior_t: FramePrior, prior_t2: FramePrior, flow, cfg: Mo
     else:
         t = threshold_otsu(residual, cfg.otsu_bins, valid)
     thr = jnp.maximum(t, floor)
-    return (residual > thr) & valid, residual, valid, thr, rel
+    return GeometryCue(mask=(residual > thr) & valid, residual=residual, valid=valid, threshold=thr, rel_pose=rel)
 
 
 def baseline_motion_cue(prior_t: FramePrior, prior_t2: FramePrior, flow, rel, cfg: MotionConfig = MotionConfig()):
