@@ -102,13 +102,28 @@ def _holds_chunks(path) -> bool:
         return "chunk.npy" in z.namelist()
 
 
-def _load_inputs(paths):
+def _load_inputs(paths, frames=None, prior_noise=None, seed=0):
     """(one sequence, None), or (None, chunks) for several paths or one file with a ``chunk`` key:
-    the overlapping chunks of one long video (a file holding a single chunk is one sequence)."""
+    the overlapping chunks of one long video (a file holding a single chunk is one sequence).
+    ``frames``: 7-Scenes frame selection; ``prior_noise``: VGGT-like priors from the ground truth."""
     from cm3d.data.loaders import load_input
 
     if len(paths) == 1 and not _holds_chunks(paths[0]):
-        return load_input(paths[0]), None
+        from cm3d.data.sevenscenes import is_sevenscenes_folder
+
+        kwargs = {}
+        if is_sevenscenes_folder(paths[0]):
+            kwargs = {"frames": frames, "require_poses": prior_noise is not None}
+        elif frames is not None:
+            raise ValueError("--frames: only for 7-Scenes folders")
+        seq = load_input(paths[0], **kwargs)
+        if prior_noise is not None:
+            from cm3d.data.priors import priors_for
+
+            seq = priors_for(seq, prior_noise, seed)
+        return seq, None
+    if frames is not None or prior_noise is not None:
+        raise ValueError("--frames / --prior-noise: for a single input")
     from cm3d import long_video as stitch
 
     chunks = stitch.load_chunks(paths)
@@ -154,7 +169,7 @@ def _run(args) -> int:
     bank_path = Path(args.memory) if args.memory else None
     if bank_path is not None and bank_path.exists():
         bank, mem_cfg = memory.load(bank_path)
-    seq, chunks = _load_inputs(args.inputs)
+    seq, chunks = _load_inputs(args.inputs, args.frames, args.prior_noise, args.seed)
     H, W = (seq if seq is not None else chunks[0]).image_size
     changes = {"use_memory": not args.no_memory}
     if args.keyframe_interval is not None:
@@ -282,6 +297,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="frames per memory / factor-graph window (default 20; 4 for small images)")
     r.add_argument("--stride", type=int, default=None,
                    help="back end at 1/stride resolution (default 2; 1 for small images)")
+    r.add_argument("--frames", default=None, metavar="A:B:STRIDE",
+                   help="7-Scenes folders: the frames numbered A <= n < B, every STRIDE-th")
+    r.add_argument("--prior-noise", default=None, metavar="LEVEL", choices=("none", "slight", "moderate", "severe"),
+                   help="VGGT-like priors made from the input's ground truth (poses, depth) at this level")
+    r.add_argument("--seed", type=int, default=0, help="seed of --prior-noise")
     r.add_argument("--no-pictures", action="store_true", help="skip the PNG pictures")
     r.add_argument("--quiet", action="store_true", help="no progress bars")
     r.set_defaults(func=_run)

@@ -110,3 +110,36 @@ def test_holes_round_trip_through_npz(kitchen, tmp_path):
     np.testing.assert_array_equal(back.depth, seq.depth)
     np.testing.assert_array_equal(back.depth_conf == 0, seq.depth == 0)
     np.testing.assert_array_equal(back.gt.depth, seq.gt.depth)
+
+
+def _cli_error(args, capsys):
+    from cm3d import cli
+
+    rc = cli.main(args)
+    err = capsys.readouterr().err.strip()
+    return rc, err
+
+
+def test_cli_bad_folders_exit_2_with_one_line(kitchen, tmp_path, capsys):
+    d = _copy(kitchen, tmp_path)
+    out = str(tmp_path / "out")
+    (d / "camera-intrinsics.txt").unlink()
+    rc, err = _cli_error(["run", str(d), "--out", out], capsys)
+    assert rc == 2 and len(err.splitlines()) == 1 and "camera-intrinsics.txt missing" in err
+    shutil.copy(kitchen / "camera-intrinsics.txt", d)
+    (d / "frame-000160.depth.png").write_bytes(b"garbage")
+    rc, err = _cli_error(["run", str(d), "--out", out], capsys)
+    assert rc == 2 and len(err.splitlines()) == 1 and "unreadable depth" in err
+    shutil.copy(kitchen / "frame-000160.depth.png", d)
+    (d / "frame-000162.pose.txt").unlink()
+    rc, err = _cli_error(["run", str(d), "--out", out, "--prior-noise", "moderate", "--seed", "1"], capsys)
+    assert rc == 2 and len(err.splitlines()) == 1 and "frame-000162.pose.txt missing" in err
+    rc, err = _cli_error(["run", str(d), "--out", out, "--frames", "500:600"], capsys)
+    assert rc == 2 and "selects none" in err
+
+
+def test_load_input_dispatches_sevenscenes(kitchen):
+    from cm3d.data.loaders import load_input
+
+    seq = load_input(kitchen, frames="160:170:2", require_poses=True)
+    assert seq.meta["source"] == "sevenscenes" and seq.meta["frames"] == [160, 164, 168]

@@ -2,7 +2,8 @@
 
 - ``*.npz``: a sequence file / saved VGGT predictions (:mod:`cm3d.data.io`);
 - a folder with ``rgb.txt`` and ``depth.txt``: TUM RGB-D (:mod:`cm3d.data.tum_rgbd`);
-- a folder with ``images/`` and ``priors.npz``: images plus priors (:func:`load_image_folder`).
+- a folder with ``images/`` and ``priors.npz``: images plus priors (:func:`load_image_folder`);
+- a folder with ``frame-XXXXXX.color.jpg|png``: 7-Scenes / tsdf-fusion (:mod:`cm3d.data.sevenscenes`).
 """
 
 from __future__ import annotations
@@ -82,5 +83,9 @@ def load_input(path, **kwargs) -> Sequence:
         return load_tum_rgbd(path, **kwargs)
     if (path / "images").is_dir():
         return load_image_folder(path)
+    from cm3d.data.sevenscenes import is_sevenscenes_folder, load_sevenscenes
+
+    if is_sevenscenes_folder(path):
+        return load_sevenscenes(path, **kwargs)
     raise ValueError(f"{path}: not a recognised input folder (expected rgb.txt + depth.txt for TUM "
-                     "RGB-D, or images/ + priors.npz)")
+                     "RGB-D, images/ + priors.npz, or frame-XXXXXX.color.jpg + camera-intrinsics.txt for 7-Scenes)")
