@@ -101,14 +101,14 @@ def _validate(seq: Sequence, source, names: dict[str, str]) -> None:
     no_pos = ~(arrays["depth"] > 0).reshape(S, -1).any(axis=1)
     if no_pos.any():
         fail("depth", f"frame {_first_frame(no_pos)} has no positive depth")
+    neg = arrays["depth_conf"] < 0
+    if neg.any():
+        fail("depth_conf", f"{int(neg.sum())} negative values, first in frame {_first_frame(neg)}")
     # sensor holes (depth 0, confidence 0) are valid; a frame must keep some usable pixel
     unusable = ~((arrays["depth"] > 0) & (arrays["depth_conf"] > 0)).reshape(S, -1).any(axis=1)
     if unusable.any():
         fail("depth", f"frame {_first_frame(unusable)} has no usable depth (no pixel with depth > 0 "
                       "and depth_conf > 0)")
-    neg = arrays["depth_conf"] < 0
-    if neg.any():
-        fail("depth_conf", f"{int(neg.sum())} negative values, first in frame {_first_frame(neg)}")
     for key in ("intrinsic", "gt_intrinsic"):
         if key in arrays:
             K = arrays[key]
