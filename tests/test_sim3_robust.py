@@ -94,3 +94,15 @@ def test_backproject_inverts_project():
     grid = np.asarray(camera.pixel_grid(4, 5, jnp.float32)).reshape(-1, 2)
     dense = np.asarray(camera.unproject_camera(jnp.asarray(depth, jnp.float32), jnp.asarray(K, jnp.float32))).reshape(-1, 3)
     np.testing.assert_allclose(camera.backproject(grid.astype(np.float64), depth.reshape(-1), K), dense, rtol=1e-5)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(1, 40), st.integers(0, 10_000))
+def test_masked_median_low_matches_statistics(n, seed):
+    import statistics
+
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(4, n)).astype(np.float32)
+    valid = rng.random((4, n)) < 0.6
+    want = statistics.median_low(x[valid].tolist()) if valid.any() else 0.0
+    assert float(jax.jit(robust.masked_median_low)(x, valid)) == want

@@ -14,7 +14,7 @@ from flax import struct
 from cm3d.motion.frames import FramePrior, MotionConfig
 from cm3d.ops import camera, robust, se3
 from cm3d.ops.otsu import threshold_otsu
-from cm3d.ops.robust import masked_median
+from cm3d.ops.robust import masked_median_low
 from cm3d.solvers.camera_motion import fit_camera_motion
 
 
@@ -53,7 +53,8 @@ def refine_relative_pose(depth, K0, K1, flow, rel_init, weight, cfg: MotionConfi
     w0 = weight[::s, ::s].reshape(-1) * (d > camera.MIN_DEPTH)
 
     def scale(rn, ok):
-        return jnp.maximum(cfg.pose_min_scale_px, cfg.pose_scale_k * robust.robust_sigma(rn, ok))
+        return jnp.maximum(cfg.pose_min_scale_px,
+                           cfg.pose_scale_k * robust.MAD_TO_SIGMA * masked_median_low(rn, ok))
 
     T = fit_camera_motion(camera.backproject(grid, d, K0), target, K1, w0, rel_init.astype(depth.dtype)[None],
                           scale, cfg.pose_iters)
@@ -90,7 +91,7 @@ def geometry_motion_cue(prior_t: FramePrior, prior_t2: FramePrior, flow,
     residual = jnp.where(valid, jnp.linalg.norm(flow - ego, axis=-1), 0.0)
     sub = max(1, cfg.pose_stride)  # the median noise level from a grid subsample is plenty
     floor = jnp.maximum(cfg.residual_floor_px,
-                        cfg.residual_noise_k * masked_median(residual[::sub, ::sub].ravel(), valid[::sub, ::sub].ravel()))
+                        cfg.residual_noise_k * masked_median_low(residual[::sub, ::sub], valid[::sub, ::sub]))
     if cfg.otsu_log:
         t = jnp.exp(threshold_otsu(jnp.log(residual + 1e-3), cfg.otsu_bins, valid)) - 1e-3
     else:

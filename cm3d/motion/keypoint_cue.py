@@ -12,7 +12,7 @@ import jax.numpy as jnp
 
 from cm3d.motion.frames import FramePrior, MotionConfig
 from cm3d.ops import camera, components, robust, se3
-from cm3d.ops.robust import masked_median
+from cm3d.ops.robust import masked_median_low
 
 
 def _sample_median3(depth, uv):
@@ -86,7 +86,7 @@ def keypoint_displacements(prior_t: FramePrior, prior_t2: FramePrior, matches, r
     X0 = camera.backproject(uv0, z0, prior_t.intrinsic)
     z_pred = se3.transform_points(rel, X0)[:, 2]
     ratio = z_pred / jnp.where(ok, z1, 1.0)
-    scale = masked_median(ratio, ok & (ratio > 0))
+    scale = masked_median_low(ratio, ok & (ratio > 0))
     scale = jnp.where(scale > 0, scale, 1.0)
     X1 = se3.transform_points(se3.inverse(rel), camera.backproject(uv1, z1 * scale, prior_t2.intrinsic))
     disp = (X1 - X0) / jnp.where(ok, z0, 1.0)[:, None]
@@ -113,14 +113,15 @@ def dynamic_keypoints(disp, ray, ok, cfg: MotionConfig = MotionConfig(), referen
     """
     ref = ok if reference is None else jnp.asarray(reference, bool) & ok
     enough = jnp.sum(ref) >= cfg.kp_min_reference
-    m = jnp.stack([masked_median(disp[:, k], ref) for k in range(3)]) * enough
+    m = jnp.stack([masked_median_low(disp[:, k], ref) for k in range(3)]) * enough
     dev = disp - m
     along = jnp.sum(dev * ray, -1)
     across = jnp.linalg.norm(dev - along[:, None] * ray, axis=-1)
     floor = cfg.kp_min_rel_disp / max(cfg.kp_sigma_k, 1e-6) / 4.0
-    med_along = masked_median(along, ref) * enough
-    s_along = jnp.where(enough, robust.mad_sigma(along, ref), cfg.kp_sigma_along)
-    s_across = jnp.where(enough, masked_median(across, ref) / 1.1774, cfg.kp_sigma_across)
+    med_along = masked_median_low(along, ref) * enough
+    s_along = jnp.where(enough, robust.MAD_TO_SIGMA * masked_median_low(jnp.abs(along - med_along), ref),
+                        cfg.kp_sigma_along)
+    s_across = jnp.where(enough, masked_median_low(across, ref) / 1.1774, cfg.kp_sigma_across)
     s_along, s_across = jnp.maximum(s_along, floor), jnp.maximum(s_across, floor)
     score = jnp.sqrt(((along - med_along) / s_along) ** 2 + (across / s_across) ** 2)
     mag = (score > cfg.kp_sigma_k) & (jnp.linalg.norm(dev, axis=-1) > cfg.kp_min_rel_disp)

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 
 from cm3d.motion.frames import MotionConfig
 from cm3d.ops import robust, se3
-from cm3d.ops.robust import masked_median
+from cm3d.ops.robust import masked_median_low
 from cm3d.solvers.camera_motion import fit_camera_motion, reprojection
 
 
@@ -89,5 +89,7 @@ def moving_from_residuals(r, judged, num_tracks: int, cfg: MotionConfig = Motion
     n = jnp.sum(jl, -1)
     rms = jnp.sqrt(jnp.sum(jnp.where(jl, jnp.sum(r * r, -1).reshape(L, T), 0.0), -1) / jnp.maximum(n, 1))
     has = n > 0
-    tau = jnp.maximum(cfg.track_min_px, masked_median(rms, has) + cfg.track_n_mad * robust.mad_sigma(rms, has))
+    med = masked_median_low(rms, has)
+    mad = masked_median_low(jnp.abs(rms - med), has)
+    tau = jnp.maximum(cfg.track_min_px, med + cfg.track_n_mad * robust.MAD_TO_SIGMA * mad)
     return has & (rms > tau)

@@ -1,7 +1,8 @@
 """Robust statistics at fixed shapes: masked median, MAD scale, χ² quantile.
 
 One meaning each for the package: :func:`masked_median` is the ordinary median (mean of the two
-middle values for an even count); :data:`MAD_TO_SIGMA` turns a median absolute deviation into a
+middle values for an even count), :func:`masked_median_low` the low median (the lower of the two,
+always a sample: Python's ``statistics.median_low``; the motion cues are tuned on it); :data:`MAD_TO_SIGMA` turns a median absolute deviation into a
 Gaussian σ; :func:`chi2_quantile` is jittable (Wilson–Hilferty, ~1 % for dof >= 3).
 """
 
@@ -26,6 +27,15 @@ def masked_median(x, valid, axis: int = -1):
     hi = jnp.clip(n // 2, 0, size - 1)[..., None]
     med = 0.5 * (jnp.take_along_axis(s, lo, -1) + jnp.take_along_axis(s, hi, -1))[..., 0]
     return jnp.where(n > 0, med, jnp.zeros_like(med))
+
+
+def masked_median_low(x, valid):
+    """Low median of ``x[valid]`` over all elements (the lower middle value; 0 when nothing is valid)."""
+    x = jnp.asarray(x).reshape(-1)
+    valid = jnp.broadcast_to(jnp.asarray(valid, bool).reshape(-1), x.shape)
+    n = jnp.sum(valid)
+    s = jnp.sort(jnp.where(valid, x, jnp.inf))
+    return jnp.where(n > 0, s[jnp.clip((n - 1) // 2, 0, x.shape[0] - 1)], 0.0)
 
 
 def robust_sigma(r, valid, axis: int = -1):
