@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cm3d.data.resize import resize_frame
+
 
 def load_davis(folder, resize: float = 1.0, max_frames: int | None = None):
     """A DAVIS-layout folder -> (images (S, H, W, 3) uint8 RGB, masks (S, H, W) bool); ``resize``
@@ -29,10 +31,7 @@ def load_davis(folder, resize: float = 1.0, max_frames: int | None = None):
             raise ValueError(f"{mpath}: missing or unreadable mask")
         if m.shape != img.shape[:2]:
             raise ValueError(f"{mpath}: mask is {m.shape[1]}x{m.shape[0]}, image {img.shape[1]}x{img.shape[0]}")
-        if resize != 1.0:
-            size = (int(round(img.shape[1] * resize)), int(round(img.shape[0] * resize)))
-            img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
-            m = cv2.resize(m, size, interpolation=cv2.INTER_NEAREST)
+        img, m = resize_frame(img, m, resize)
         images.append(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
         masks.append(m > 127)
     return np.stack(images), np.stack(masks)

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cm3d.data.resize import resize_frame
 from cm3d.data.sequence import GroundTruth, Sequence
 
 DEPTH_SCALE = 1000.0  # uint16 millimetres
@@ -154,10 +155,7 @@ def load_sevenscenes(folder, frames: str | None = None, require_poses: bool = Fa
                              f"{img.shape[1]}x{img.shape[0]}")
         if not (d > 0).any():
             raise ValueError(f"{dpath}: frame {n} has no usable depth (every pixel is a hole)")
-        if resize != 1.0:
-            size = (int(round(img.shape[1] * resize)), int(round(img.shape[0] * resize)))
-            img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
-            d = cv2.resize(d, size, interpolation=cv2.INTER_NEAREST)
+        img, d = resize_frame(img, d, resize)
         images.append(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
         depth.append(d)
         pose_path = folder / f"frame-{n:06d}.pose.txt"
