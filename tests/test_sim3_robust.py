@@ -38,7 +38,9 @@ def test_sim3_parts_apply_inverse():
 @given(st.integers(0, 10_000))
 def test_sim3_exp_log_round_trip(seed):
     rng = np.random.default_rng(seed)
-    p = np.concatenate([rng.normal(size=3) * 0.8, rng.normal(size=3), rng.uniform(-1, 1, 1)]).astype(np.float32)
+    w = rng.normal(size=3)
+    w *= rng.uniform(0.0, 3.0) / np.linalg.norm(w)  # log is the inverse of exp only for |w| < pi
+    p = np.concatenate([w, rng.normal(size=3), rng.uniform(-1, 1, 1)]).astype(np.float32)
     A = sim3.exp(p)
     np.testing.assert_allclose(sim3.log(A), p, atol=2e-5)
     np.testing.assert_allclose(sim3.scale(A), np.exp(p[6]), rtol=1e-5)
