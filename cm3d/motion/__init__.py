@@ -9,12 +9,15 @@ several frames; host-side refinement is :mod:`cm3d.refine`. Conventions: :mod:`c
 """
 
 # the public API of the motion cues (re-exported)
-from cm3d.motion.cues import flow_motion_cue, motion_cues, motion_cues_jit, sequence_motion_cues, warp_mask  # noqa: F401
-from cm3d.motion.frames import FramePrior, MotionConfig, MotionCues  # noqa: F401
+from cm3d.motion.cues import combine_pairs, flow_motion_cue, motion_cues, motion_cues_jit, sequence_motion_cues, warp_mask  # noqa: F401
+from cm3d.motion.frames import FramePrior, MotionConfig, MotionCues, SecondPair  # noqa: F401
 from cm3d.motion.geometry_cue import (  # noqa: F401
     GeometryCue, baseline_motion_cue, ego_flow_rel, geometry_motion_cue, refine_relative_pose, relative_pose
 )
 from cm3d.motion.keypoint_cue import (  # noqa: F401
     candidate_regions, dynamic_keypoints, keypoint_displacements, robust_motion_cue, static_reference
+)
+from cm3d.motion.occlusion import (  # noqa: F401
+    bilinear_sample, depth_range_residual, forward_backward_consistent, visible_in_partner
 )
 from cm3d.motion.track_cue import moving_from_residuals, moving_tracks, segment_median, track_residuals  # noqa: F401

@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from cm3d.motion.frames import FramePrior, MotionConfig, MotionCues
+from cm3d.motion.frames import FramePrior, MotionConfig, MotionCues, SecondPair
 from cm3d.motion.geometry_cue import baseline_motion_cue, geometry_motion_cue
 from cm3d.motion.keypoint_cue import (
     candidate_regions, dynamic_keypoints, keypoint_displacements, robust_motion_cue, static_reference
@@ -24,17 +24,31 @@ def flow_motion_cue(flow, cfg: MotionConfig = MotionConfig()):
     return slowest_component_mask(res).reshape(H, W), res
 
 
+def combine_pairs(mask_a, valid_a, mask_b, valid_b):
+    """Evidence over two frame pairs: (dynamic, judged) (H, W). A pixel is dynamic when it moves in
+    every pair that judges it (an occluded or out-of-view pixel is judged by the other pair alone)."""
+    judged = valid_a | valid_b
+    return (mask_a | ~valid_a) & (mask_b | ~valid_b) & judged, judged
+
+
 def motion_cues(prior_t: FramePrior, prior_t2: FramePrior, flow, matches,
-                cfg: MotionConfig = MotionConfig()) -> MotionCues:
+                cfg: MotionConfig = MotionConfig(), flow_rev=None, second: SecondPair | None = None) -> MotionCues:
     """All motion cues of frame t from the pair (t, t2): flow (H, W, 2) forward from t to t2 and
-    keypoint ``matches`` (:class:`cm3d.ops.keypoints.Matches`, padded). Pure; jit with ``cfg``
-    static, vmap over frames for a sequence."""
+    keypoint ``matches`` (:class:`cm3d.ops.keypoints.Matches`, padded). ``flow_rev`` (t2 -> t):
+    the forward-backward occlusion check; ``second``: another partner (:class:`SecondPair`) whose
+    residual cue must agree (``cfg.two_pairs``). Pure; jit with ``cfg`` static, vmap over frames."""
     flow = jnp.asarray(flow, jnp.float32)
     if flow.shape != prior_t.depth.shape + (2,):
         raise ValueError(f"motion_cues: flow shape {flow.shape} does not match depth {prior_t.depth.shape}")
     flow_mask, _ = flow_motion_cue(flow, cfg)
-    geo = geometry_motion_cue(prior_t, prior_t2, flow, cfg)
-    geo_mask, residual, valid, thr, rel = geo.mask, geo.residual, geo.valid, geo.threshold, geo.rel_pose
+    geo = geometry_motion_cue(prior_t, prior_t2, flow, cfg, flow_rev)
+    geo_mask, valid = geo.mask, geo.valid
+    if second is not None and cfg.two_pairs:
+        g2 = geometry_motion_cue(prior_t, second.partner, jnp.asarray(second.flow, jnp.float32), cfg,
+                                 jnp.asarray(second.flow_rev, jnp.float32))
+        ok2 = jnp.asarray(second.valid, bool)
+        geo_mask, valid = combine_pairs(geo_mask, valid, g2.mask & ok2, g2.valid & ok2)
+    residual, thr, rel = geo.residual, geo.threshold, geo.rel_pose
     candidates, labels = candidate_regions(flow_mask, geo_mask, valid, cfg)
     disp, ray, kp_ok = keypoint_displacements(prior_t, prior_t2, matches, rel, cfg)
     kp_dyn = dynamic_keypoints(disp, ray, kp_ok, cfg, static_reference(labels, matches, kp_ok, cfg))
@@ -42,7 +56,7 @@ def motion_cues(prior_t: FramePrior, prior_t2: FramePrior, flow, matches,
     baseline = baseline_motion_cue(prior_t, prior_t2, flow, rel, cfg)
     return MotionCues(flow_mask=flow_mask, geo_mask=geo_mask, candidates=candidates, robust_mask=robust,
                       baseline_mask=baseline, residual=residual, valid=valid, geo_threshold=thr,
-                      rel_pose=rel, kp_dynamic=kp_dyn_inside, kp_valid=kp_ok)
+                      rel_pose=rel, kp_dynamic=kp_dyn_inside, kp_valid=kp_ok, occluded=geo.occluded)
 
 
 def sequence_motion_cues(priors: FramePrior, flows, matches, cfg: MotionConfig = MotionConfig()) -> MotionCues:

@@ -38,12 +38,25 @@ class FramePrior:
 
 
 @struct.dataclass
+class SecondPair:
+    """A second partner of frame t (its previous frame, in the pipeline): the partner's priors, flow
+    (H, W, 2) t -> partner, flow partner -> t (for the forward-backward check), valid () bool."""
+
+    partner: FramePrior
+    flow: jnp.ndarray
+    flow_rev: jnp.ndarray
+    valid: jnp.ndarray
+
+
+@struct.dataclass
 class MotionCues:
     """Each stage's mask (H, W) bool and the geometric residual, for one frame pair (t, t2).
 
     flow_mask, geo_mask, candidates, robust_mask, baseline_mask: the stages' masks; residual (H, W)
     px (0 where invalid); valid (H, W); geo_threshold (px); rel_pose (4, 4) refined camera-t ->
-    camera-t2; kp_dynamic, kp_valid (N,) per match.
+    camera-t2; kp_dynamic, kp_valid (N,) per match; occluded (H, W): not judged in the pair (t, t2).
+    With a second pair, geo_mask and valid combine both pairs; residual, threshold and rel_pose
+    are the first pair's.
     """
 
     flow_mask: jnp.ndarray
@@ -57,6 +70,7 @@ class MotionCues:
     rel_pose: jnp.ndarray
     kp_dynamic: jnp.ndarray
     kp_valid: jnp.ndarray
+    occluded: jnp.ndarray
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,6 +92,14 @@ class MotionConfig:
     residual_noise_k: float = 4.0  # threshold >= k * median residual (the static noise level)
     min_depth_conf: float = 0.0
     border_px: float = 2.0  # a pixel whose flow or ego flow leaves the image (minus this) is not judged
+    # occlusion reasoning (cm3d.motion.occlusion): occluded pixels are not judged
+    occlusion: bool = True
+    fb_alpha: float = 0.01  # forward-backward check |w + w'|^2 <= alpha (|w|^2 + |w'|^2) + beta (Sundaram 2010)
+    fb_beta_px2: float = 0.5
+    fb_occludes: bool = False  # an inconsistent pixel is not judged (else it is only left out of the pose fit)
+    zbuffer_rel_tol: float = 0.05  # hidden: lands behind the partner's depth by more than this fraction
+    edge_radius_px: int = 2  # the residual is to the ego flows of every depth within this radius (0: own depth)
+    two_pairs: bool = True  # with a second partner (t-1), dynamic = moving in every pair that judges it
     # candidate regions
     candidate_source: str = "geo"  # "geo", "union" or "intersection" of the flow and geo masks
     open_radius: int = 1

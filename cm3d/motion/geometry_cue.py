@@ -12,6 +12,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from cm3d.motion.frames import FramePrior, MotionConfig
+from cm3d.motion.occlusion import depth_range_residual, forward_backward_consistent, visible_in_partner
 from cm3d.ops import camera, robust, se3
 from cm3d.ops.otsu import threshold_otsu
 from cm3d.ops.robust import masked_median_low
@@ -64,31 +65,50 @@ def refine_relative_pose(depth, K0, K1, flow, rel_init, weight, cfg: MotionConfi
 @struct.dataclass
 class GeometryCue:
     """The residual-flow cue of one frame pair: mask, residual (H, W) px, valid (H, W), the Otsu
-    threshold (px) and the flow-refined relative pose (4, 4) camera t -> camera t2."""
+    threshold (px), the flow-refined relative pose (4, 4) camera t -> camera t2 and the occluded
+    pixels (H, W) (forward-backward inconsistent or hidden in t2; never judged)."""
 
     mask: jax.Array
     residual: jax.Array
     valid: jax.Array
     threshold: jax.Array
     rel_pose: jax.Array
+    occluded: jax.Array
 
 
-def geometry_motion_cue(prior_t: FramePrior, prior_t2: FramePrior, flow,
-                        cfg: MotionConfig = MotionConfig()) -> GeometryCue:
-    """Residual flow cue (:class:`GeometryCue`).
+def geometry_motion_cue(prior_t: FramePrior, prior_t2: FramePrior, flow, cfg: MotionConfig = MotionConfig(),
+                        flow_back=None) -> GeometryCue:
+    """Residual flow cue (:class:`GeometryCue`) of frame t against t2.
 
-    ``residual = |flow - ego_flow|`` under the flow-refined relative pose, valid where depth is
-    positive, confident and in front of both cameras. Threshold: Otsu (on log residual when
-    ``otsu_log``), at least ``max(residual_floor_px, residual_noise_k * median residual)``.
+    ``residual`` = distance of the flow to the ego flows of the depths within ``edge_radius_px``
+    (:func:`~cm3d.motion.occlusion.depth_range_residual`; the plain ``|flow - ego_flow|`` inside a
+    surface) under the flow-refined relative pose. Judged (``valid``) where depth is positive and
+    confident, in front of both cameras, inside the image and not occluded: the z-buffer test
+    against t2's depth (``cfg.occlusion``) and, with ``flow_back`` (H, W, 2), t2 -> t, the
+    forward-backward check (it always keeps inconsistent pixels out of the pose fit, and out of
+    the judgement with ``cfg.fb_occludes``: off by default, as DIS flow is also inconsistent on fast
+    movers, whose pixels it would drop). Threshold: Otsu (on log residual when ``otsu_log``), at least
+    ``max(residual_floor_px, residual_noise_k * median residual)``.
     """
     depth, K0, K1 = prior_t.depth, prior_t.intrinsic, prior_t2.intrinsic
     rel = relative_pose(prior_t, prior_t2)
     conf_ok = (prior_t.depth_conf >= cfg.min_depth_conf) & (depth > camera.MIN_DEPTH)
+    consistent = jnp.ones_like(conf_ok)
+    if cfg.occlusion and flow_back is not None:
+        consistent = forward_backward_consistent(flow, flow_back, cfg.fb_alpha, cfg.fb_beta_px2)
     if cfg.refine_pose:
-        rel = refine_relative_pose(depth, K0, K1, flow, rel, conf_ok.astype(depth.dtype), cfg)
-    ego, ego_ok = ego_flow_rel(depth, K0, K1, rel)
-    valid = ego_ok & conf_ok & _lands_inside(ego, cfg.border_px) & _lands_inside(flow, cfg.border_px)
-    residual = jnp.where(valid, jnp.linalg.norm(flow - ego, axis=-1), 0.0)
+        rel = refine_relative_pose(depth, K0, K1, flow, rel, (conf_ok & consistent).astype(depth.dtype), cfg)
+    if cfg.edge_radius_px > 0:
+        residual, ego, ego_ok = depth_range_residual(flow, depth, conf_ok, K0, K1, rel, cfg.edge_radius_px)
+    else:
+        ego, ego_ok = ego_flow_rel(depth, K0, K1, rel)
+        residual = jnp.linalg.norm(flow - ego, axis=-1)
+    occluded = ~consistent if cfg.fb_occludes else jnp.zeros_like(consistent)
+    if cfg.occlusion:
+        occluded |= ~visible_in_partner(depth, K0, K1, rel, prior_t2.depth, cfg.zbuffer_rel_tol)
+    valid = (ego_ok & conf_ok & _lands_inside(ego, cfg.border_px) & _lands_inside(flow, cfg.border_px)
+             & ~occluded)
+    residual = jnp.where(valid, residual, 0.0)
     sub = max(1, cfg.pose_stride)  # the median noise level from a grid subsample is plenty
     floor = jnp.maximum(cfg.residual_floor_px,
                         cfg.residual_noise_k * masked_median_low(residual[::sub, ::sub], valid[::sub, ::sub]))
@@ -97,7 +117,8 @@ def geometry_motion_cue(prior_t: FramePrior, prior_t2: FramePrior, flow,
     else:
         t = threshold_otsu(residual, cfg.otsu_bins, valid)
     thr = jnp.maximum(t, floor)
-    return GeometryCue(mask=(residual > thr) & valid, residual=residual, valid=valid, threshold=thr, rel_pose=rel)
+    return GeometryCue(mask=(residual > thr) & valid, residual=residual, valid=valid, threshold=thr, rel_pose=rel,
+                       occluded=occluded)
 
 
 def baseline_motion_cue(prior_t: FramePrior, prior_t2: FramePrior, flow, rel, cfg: MotionConfig = MotionConfig()):

@@ -8,7 +8,7 @@ import jax
 import numpy as np
 from flax import struct
 
-from cm3d.motion import FramePrior
+from cm3d.motion import FramePrior, SecondPair
 from cm3d.ops.keypoints import Matches
 from cm3d.pipeline.config import PipelineConfig
 
@@ -27,12 +27,16 @@ class Features:
 class Inputs:
     """Per-frame inputs, with a leading frame axis ``S`` for a sequence (everything at reduced
     resolution ``h x w``): frame and partner priors (partner = t+1, t-1 for the last frame), flow
-    (h, w, 2) and keypoint matches frame -> partner, memory features, valid (padding frames are
-    False), last (the sequence's last real frame), index (frame number)."""
+    (h, w, 2) and keypoint matches frame -> partner, flow_rev (partner -> frame, the occlusion
+    check), the second partner t-1 (:class:`~cm3d.motion.SecondPair`; invalid for the first and last
+    frames), memory features, valid (padding frames are False), last (the sequence's last real
+    frame), index (frame number)."""
 
     frame: FramePrior
     partner: FramePrior
     flow: Any
+    flow_rev: Any
+    second: SecondPair
     matches: Matches
     features: Features
     valid: Any
@@ -63,26 +67,28 @@ def padded_length(num_frames: int, cfg: PipelineConfig) -> int:
 
 
 def _front_end(images: np.ndarray, partner: np.ndarray, cfg: PipelineConfig, flow=None, progress=None):
-    """OpenCV flow (S, H, W, 2) and keypoint matches of every frame with its partner."""
+    """OpenCV flow (S, H, W, 2) of every frame to its partner and back, and keypoint matches."""
     from cm3d.ops import flow as oflow
     from cm3d.ops import keypoints as okp
 
     S, H, W = images.shape[:3]
     flows = np.zeros((S, H, W, 2), np.float32)
+    back = np.zeros((S, H, W, 2), np.float32)
     uv0 = np.zeros((S, cfg.keypoints.max_matches, 2), np.float32)
     uv1 = np.zeros_like(uv0)
     mvalid = np.zeros((S, cfg.keypoints.max_matches), bool)
     for t in range(S):
         p = partner[t]
-        if flow is not None and p == t + 1:
-            flows[t] = flow[t]
+        if p == t + 1:  # the last frame's pair (S-1, S-2) is the pair (S-2, S-1) reversed
+            flows[t] = flow[t] if flow is not None else oflow.compute_flow(images[t], images[p], cfg.flow)
+            back[t] = oflow.compute_flow(images[p], images[t], cfg.flow)
         else:
-            flows[t] = oflow.compute_flow(images[t], images[p], cfg.flow)
+            flows[t], back[t] = back[p], flows[p]
         m = okp.match_keypoints(images[t], images[p], cfg.keypoints)
         uv0[t], uv1[t], mvalid[t] = m.uv0, m.uv1, m.valid
         if progress is not None:
             progress(t + 1, S)
-    return flows, Matches(uv0, uv1, mvalid)
+    return flows, back, Matches(uv0, uv1, mvalid)
 
 
 def prepare(sequence, cfg: PipelineConfig = PipelineConfig(), flow=None, progress=None) -> Inputs:
@@ -100,7 +106,7 @@ def prepare(sequence, cfg: PipelineConfig = PipelineConfig(), flow=None, progres
                          f"{cfg.track.cell * s} px")
     images = np.asarray(sequence.images)
     partner = np.concatenate([np.arange(1, S), [S - 2]])
-    flows, m = _front_end(images, partner, cfg, flow, progress)
+    flows, back, m = _front_end(images, partner, cfg, flow, progress)
     feats = okp.detect_sequence(images, None, cfg.feature_capacity, cfg.keypoints)
 
     K = scale_intrinsics(sequence.intrinsic, s).astype(np.float32)
@@ -112,7 +118,11 @@ def prepare(sequence, cfg: PipelineConfig = PipelineConfig(), flow=None, progres
     part = FramePrior(image=img_s[partner], depth=depth[partner], depth_conf=conf[partner],
                       intrinsic=K[partner], cam_to_world=c2w[partner])
     features = Features(np.asarray(feats.uv / s, np.float32), np.asarray(feats.desc, np.float32), feats.valid)
-    inputs = Inputs(frame=frame, partner=part, flow=_shrink(flows, s) / s,
+    flow_s, back_s = _shrink(flows, s) / s, _shrink(back, s) / s
+    prev = np.maximum(np.arange(S) - 1, 0)
+    second = SecondPair(partner=jax.tree.map(lambda a: a[prev], frame), flow=back_s[prev], flow_rev=flow_s[prev],
+                        valid=(np.arange(S) >= 1) & (np.arange(S) < S - 1))
+    inputs = Inputs(frame=frame, partner=part, flow=flow_s, flow_rev=back_s, second=second,
                     matches=Matches(m.uv0 / s, m.uv1 / s, m.valid), features=features,
                     valid=np.ones(S, bool), last=np.arange(S) == S - 1, index=np.arange(S, dtype=np.int32))
     return pad_inputs(inputs, padded_length(S, cfg))

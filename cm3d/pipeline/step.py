@@ -69,7 +69,8 @@ class StepOutputs:
 
 def static_mask(inputs_t: Inputs, cfg: PipelineConfig):
     """Motion cues of frame t (pair with its partner): (dynamic mask (h, w), static (h, w))."""
-    cues = motion_cues(inputs_t.frame, inputs_t.partner, inputs_t.flow, inputs_t.matches, cfg.motion)
+    cues = motion_cues(inputs_t.frame, inputs_t.partner, inputs_t.flow, inputs_t.matches, cfg.motion,
+                       flow_rev=inputs_t.flow_rev, second=inputs_t.second)
     dyn = cues.robust_mask
     return dyn, ~dyn & (inputs_t.frame.depth > 0)
 
