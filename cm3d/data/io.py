@@ -219,26 +219,44 @@ def _pose(src, raw: dict, ext_key: str, c2w_key: str) -> tuple[np.ndarray | None
     return T, c2w_key
 
 
+def _read_archive(path, src) -> dict[str, np.ndarray]:
+    """The known keys of an ``.npz``, every member's CRC checked first (so a damaged byte anywhere
+    raises instead of loading different numbers). Missing files and permissions raise their OSError;
+    anything else that fails to read raises :class:`SequenceFormatError`."""
+    with open(path, "rb") as f:
+        head = f.read(8)
+    if not zipfile.is_zipfile(path):
+        if head.startswith(b"\x93NUMPY"):
+            raise _err(src, "<file>", "is a single .npy array, not an .npz archive")
+        raise _err(src, "<file>", f"not an .npz archive (no zip structure; it starts with {head!r})")
+    try:
+        with zipfile.ZipFile(path) as z:
+            bad = z.testzip()
+        if bad is not None:
+            raise _err(src, "<file>", f"damaged .npz archive (member {bad!r} fails its CRC check)")
+        raw = {}
+        with np.load(path, allow_pickle=False) as npz:
+            for key in _KNOWN:
+                if key in npz.files:
+                    try:
+                        raw[key] = npz[key]
+                    except ValueError as e:
+                        if "pickle" in str(e):  # object arrays need pickle
+                            raise _err(src, key, f"cannot be read without pickle ({e})") from e
+                        raise
+    except SequenceFormatError:
+        raise
+    except (FileNotFoundError, PermissionError, IsADirectoryError):
+        raise
+    except Exception as e:  # noqa: BLE001  zipfile / numpy raise many kinds on a damaged archive
+        raise _err(src, "<file>", f"not a readable .npz archive ({type(e).__name__}: {e})") from e
+    return raw
+
+
 def load_sequence(path: str | os.PathLike) -> Sequence:
     """Read a ``.npz`` written by :func:`save_sequence` or saved from VGGT's predictions dict."""
     src = os.fspath(path)
-    try:
-        npz = np.load(path, allow_pickle=False)
-    except FileNotFoundError:
-        raise
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-        raise _err(src, "<file>", f"not a readable .npz archive ({e})") from e
-    if not isinstance(npz, np.lib.npyio.NpzFile):
-        raise _err(src, "<file>", "is a single .npy array, not an .npz archive")
-    with npz:
-        raw = {}
-        for key in _KNOWN:
-            if key in npz.files:
-                try:
-                    raw[key] = npz[key]
-                except ValueError as e:  # object arrays need pickle
-                    raise _err(src, key, f"cannot be read without pickle ({e})") from e
-    return sequence_from_arrays(raw, src)
+    return sequence_from_arrays(_read_archive(path, src), src)
 
 
 def sequence_from_arrays(arrays: dict, source: str = "<arrays>") -> Sequence:
