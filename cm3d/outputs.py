@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 
 from cm3d import memory
-from cm3d.data.atomic import atomic_write
+from cm3d.data.atomic import atomic_write, check_writable_folder
 from cm3d.data.tum import write_tum
 from cm3d.ops import camera, sim3
 
 __all__ = ["write_json", "write_masks", "write_ply", "write_tum", "static_map", "sequence_metrics",
-           "memory_points", "window_line", "write_results"]
+           "memory_points", "window_line", "headline", "commit_line", "check_output_folder", "write_results"]
 
 
 def _plain(obj):
@@ -107,9 +107,26 @@ def static_map(seq, poses: np.ndarray, masks: np.ndarray, stride: int = 4, voxel
     return mean(pts).astype(np.float32), np.clip(np.round(mean(cols)), 0, 255).astype(np.uint8)
 
 
+def _trajectory_metrics(ts, gt, est) -> dict:
+    """ATE (Sim3, SE3), RPE, the alignment-free rotation error (deg), the ground truth's extent and
+    whether the Sim(3) ATE is defined (:func:`cm3d.eval.metrics.ate_is_defined`)."""
+    import jax
+
+    from cm3d.eval import metrics
+
+    m = metrics.evaluate_trajectories(ts, gt, ts, est)
+    with jax.enable_x64(True):
+        m["rot_rmse"] = float(metrics.rotation_rmse(np.asarray(est, np.float64), np.asarray(gt, np.float64)))
+    m["extent"] = metrics.trajectory_extent(gt)
+    m["ate_defined"] = metrics.ate_is_defined(m["ate"], m["extent"], m["pairs"])
+    return m
+
+
 def sequence_metrics(result) -> dict | None:
     """Metrics of a :class:`cm3d.pipeline.SequenceResult` against its ground truth (None without):
-    ATE / RPE of the prior and the refined trajectory, prior depth Abs Rel / δ<1.25, mask IoU."""
+    ATE (Sim3, SE3), RPE and rotation error of the prior and the refined trajectory, whether ATE is
+    defined, prior depth Abs Rel / δ<1.25 (pixels with ground truth and a prediction), mask IoU, and
+    the run's warnings and whether its refinement was kept."""
     from cm3d.eval import metrics
 
     seq = result.sequence
@@ -118,16 +135,58 @@ def sequence_metrics(result) -> dict | None:
         return None
     ts = seq.timestamps
     out = {"frames": int(seq.num_frames),
-           "prior": metrics.evaluate_trajectories(ts, gt.cam_to_world, ts, result.prior),
-           "refined": metrics.evaluate_trajectories(ts, gt.cam_to_world, ts, result.poses)}
+           "prior": _trajectory_metrics(ts, gt.cam_to_world, result.prior),
+           "refined": _trajectory_metrics(ts, gt.cam_to_world, result.poses)}
     a, b = out["prior"]["ate"], out["refined"]["ate"]
-    out["ate_reduction_pct"] = 100.0 * (a - b) / a if a > 0 else 0.0
-    dm = metrics.depth_metrics(seq.depth, gt.depth, gt.depth > 0)
+    out["ate_defined"] = out["prior"]["ate_defined"] and out["refined"]["ate_defined"]
+    out["ate_reduction_pct"] = 100.0 * (a - b) / a if a > 0 else None
+    pred = np.asarray(seq.depth)
+    dm = metrics.depth_metrics(pred, gt.depth, (gt.depth > 0) & (pred > 0))
     out["depth_prior"] = {k: float(v) for k, v in dm.items()}
     if gt.dynamic_mask is not None:
         mm = metrics.mask_metrics(result.masks, gt.dynamic_mask)
         out["mask"] = {k: float(v) for k, v in mm.items()}
+    report = getattr(result, "report", None)
+    if report is not None:
+        out["refinement_kept"] = report.refinement_kept
+        out["warnings"] = list(report.warnings)
     return out
+
+
+def headline(m: dict) -> str:
+    """The one-line summary of :func:`sequence_metrics`: never a percentage of a zero or of an
+    undefined ATE; the rotation error beside it."""
+    p, r = m["prior"], m["refined"]
+    rot = f"rotation {p['rot_rmse']:.2f} -> {r['rot_rmse']:.2f} deg"
+    if not m["ate_defined"]:
+        ate = (f"ATE undefined (the camera's extent {p['extent']:.5f} is below its noise: Sim(3) ATE prior "
+               f"{p['ate']:.5f}, refined {r['ate']:.5f}); ATE SE3 {p['ate_se3']:.5f} -> {r['ate_se3']:.5f}")
+    else:
+        pct = "" if m["ate_reduction_pct"] is None else f" ({-m['ate_reduction_pct']:+.1f} %)"
+        ate = f"ATE prior {p['ate']:.5f} -> refined {r['ate']:.5f}{pct}"
+    iou = m.get("mask", {}).get("iou", float("nan"))
+    return f"{ate}, {rot}, RPE trans {p['rpe_trans']:.5f} -> {r['rpe_trans']:.5f}, mask IoU {iou:.3f}"
+
+
+def commit_line(commit) -> str:
+    """One line on a :class:`cm3d.memory.CommitReport`: the bank, its maps, where moved maps went."""
+    line = f"memory bank {commit.path} ({commit.num_maps} maps)"
+    if not commit.maps:
+        line += ": nothing stored from this run"
+    moved = [w for w in commit.maps if w.action in ("appended", "not stored")]
+    if commit.bank_changed:
+        line += "; another process wrote it during this run" + (
+            ": " + ", ".join(f"this run's map {w.run_map} " + (f"stored as map {w.bank_map}" if w.bank_map >= 0
+                                                               else "not stored (bank full)") for w in moved)
+            if moved else ", merged without conflict")
+    if commit.upgraded_from is not None:
+        line += f"; rewritten from format version {commit.upgraded_from}"
+    return line
+
+
+def check_output_folder(out_dir) -> Path:
+    """Fail early (``ValueError``, one line) when ``out_dir`` cannot hold the outputs; creates it."""
+    return check_writable_folder(out_dir, "--out")
 
 
 def memory_points(bank, result):
@@ -167,10 +226,13 @@ def window_line(w) -> str:
             f"({w.memory_landmarks} from memory), {w.observations} observations")
 
 
-def write_results(out_dir, result, bank=None, overlay_every: int = 5, pictures: bool = True) -> dict:
+def write_results(out_dir, result, bank=None, overlay_every: int = 5, pictures: bool = True,
+                  commit=None) -> dict:
     """Everything a user looks at for one sequence, in ``out_dir``: trajectory.txt (refined, TUM),
-    trajectory_prior.txt, masks/NNNNNN.png, static_map.ply, recall.json, metrics.json (with ground
-    truth) and pictures (mask overlays, trajectories, top-down map). Returns the metrics (or {})."""
+    trajectory_prior.txt, masks/NNNNNN.png, static_map.ply, recall.json (windows, the run's checks
+    and, with ``commit`` (:class:`cm3d.memory.CommitReport`), where its maps went in the bank file),
+    metrics.json (with ground truth) and pictures (mask overlays, trajectories, top-down map; ``bank``:
+    the run's own bank, whose map ids the windows name). Returns the metrics (or {})."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     seq = result.sequence
@@ -179,7 +241,13 @@ def write_results(out_dir, result, bank=None, overlay_every: int = 5, pictures: 
     write_masks(out / "masks", result.masks)
     pts, cols = static_map(seq, result.poses, result.masks)
     write_ply(out / "static_map.ply", pts, cols)
-    write_json(out / "recall.json", {"windows": [w.to_json() for w in result.windows]})
+    recall = {"windows": [w.to_json() for w in result.windows]}
+    report = getattr(result, "report", None)
+    if report is not None:
+        recall["run"] = report.to_json()
+    if commit is not None:
+        recall["memory"] = commit.to_json()
+    write_json(out / "recall.json", recall)
     m = sequence_metrics(result)
     if m is not None:
         write_json(out / "metrics.json", m)

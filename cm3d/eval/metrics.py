@@ -152,6 +152,41 @@ def pose_metrics(est, gt, valid=None) -> dict:
 _pose_metrics_jit = jax.jit(pose_metrics)
 
 
+def rotation_rmse(est, gt, valid=None):
+    """Rotation error (degrees, RMS over frames) after the best global rotation, whatever the
+    positions: ``R* = argmin sum |R_gt_i - R* R_est_i|_F`` (the SO(3) projection of
+    ``sum R_gt_i R_est_i^T``), then the angle of ``R_gt_i^T R* R_est_i``. Unlike ATE it stays defined
+    for a camera that barely moves. est, gt: cam_to_world (N, 4, 4); valid: optional (N,) mask."""
+    est = jnp.asarray(est)
+    gt = jnp.asarray(gt, dtype=est.dtype)
+    w = _weights(est.shape[0], valid, est.dtype)
+    Re, Rg = _sanitize(est, w)[:, :3, :3], _sanitize(gt, w)[:, :3, :3]
+    M = jnp.einsum("n,nij,nkj->ik", w, Rg, Re)
+    U, _, Vt = jnp.linalg.svd(M)
+    D = jnp.diag(jnp.array([1.0, 1.0, jnp.sign(jnp.linalg.det(U @ Vt))], est.dtype))
+    R = U @ D @ Vt
+    E = jnp.einsum("nji,jk,nkl->nil", Rg, R, Re)
+    deg = _rotation_angle(E) * (180.0 / math.pi)
+    return _weighted_rmse(deg ** 2, w)
+
+
+def trajectory_extent(c2w) -> float:
+    """RMS distance (m) of the camera centres (N, 4, 4) from their centroid (host)."""
+    c = np.asarray(c2w, np.float64)[:, :3, 3]
+    return float(np.sqrt(np.mean(np.sum((c - c.mean(0)) ** 2, axis=-1)))) if len(c) else 0.0
+
+
+ATE_DEFINED_RATIO = 1.0 / math.sqrt(2.0)
+
+
+def ate_is_defined(ate_sim3: float, extent: float, pairs: int) -> bool:
+    """Whether a Sim(3)-aligned ATE says anything: at least 3 poses, and the fit did not shrink the
+    estimate to its centroid. A Sim(3) fit can always scale an estimate down, so ATE <= extent; an
+    estimate whose noise ``σ`` swamps a trajectory of extent ``e`` gives ``ATE ≈ e σ / sqrt(e² + σ²)``,
+    which passes ``e / sqrt(2)`` exactly when ``σ > e``: the extent is below the noise (undefined)."""
+    return bool(pairs >= 3 and extent > 0 and np.isfinite(ate_sim3) and ate_sim3 <= ATE_DEFINED_RATIO * extent)
+
+
 # Association and file-level evaluation (host)
 
 
@@ -265,8 +300,8 @@ def align_depth_scale_shift(pred, gt, valid=None):
 def depth_metrics(pred, gt, valid=None, align: bool = True) -> dict:
     """Depth errors after per-sequence scale-and-shift alignment -> dict(abs_rel, delta1) scalars.
 
-    pred, gt: (S, H, W) depths in metres; valid: optional bool mask. Pixels count when valid, ``gt > 0``
-    and finite. ``abs_rel = mean |a - g| / g``, ``delta1`` = fraction with ``max(a/g, g/a) < 1.25`` (an
+    pred, gt: (S, H, W) depths in metres; valid: optional bool mask (leave out pixels with no prediction,
+    e.g. a sensor's holes, there). Pixels count when valid, ``gt > 0`` and finite. ``abs_rel = mean |a - g| / g``, ``delta1`` = fraction with ``max(a/g, g/a) < 1.25`` (an
     aligned ``a <= 0`` fails it), ``a = scale * pred + shift`` (``pred`` when not ``align``). NaN when empty.
     """
     pred = jnp.asarray(pred)
