@@ -111,10 +111,10 @@ def scene_scale(depth, valid) -> jnp.ndarray:
 
 
 def eligible_pixels(depth, conf, static, cfg: TrackConfig = TrackConfig()):
-    """(H, W) bool: static, valid depth, confidence >= the frame's ``conf_quantile`` over its
-    static valid pixels, at least ``border`` px from the edge."""
+    """(H, W) bool: static, valid depth, confidence > 0 (never a filled sensor hole) and >= the
+    frame's ``conf_quantile`` over its static valid pixels, at least ``border`` px from the edge."""
     H, W = depth.shape
-    ok = static & (depth > 0) & jnp.isfinite(depth) & jnp.isfinite(conf)
+    ok = static & (depth > 0) & jnp.isfinite(depth) & jnp.isfinite(conf) & (conf > 0)
     thr = jnp.nanquantile(jnp.where(ok, conf, jnp.nan), cfg.conf_quantile)
     thr = jnp.where(jnp.isfinite(thr), thr, jnp.inf)
     v, u = jnp.meshgrid(jnp.arange(H), jnp.arange(W), indexing="ij")

@@ -108,13 +108,14 @@ class SequenceCloud:
 
 def sequence_cloud(depth, conf, K, cam_to_world, images, static, cfg: MemoryConfig) -> SequenceCloud:
     """Lift every ``cfg.pixel_stride``-th static pixel whose confidence is above the sequence's
-    ``cfg.min_conf_quantile`` quantile (and depth > 0) to the world: (S, H, W) inputs."""
+    ``cfg.min_conf_quantile`` quantile (depth > 0, confidence > 0: a filled sensor hole is never
+    lifted) to the world: (S, H, W) inputs."""
     st = cfg.pixel_stride
     d = depth[:, ::st, ::st]
     c = conf[:, ::st, ::st]
     Ks = K.at[..., :2, :].divide(st)  # pixel (u, v) of the strided grid is (st u, st v) in full
     pts = camera.unproject(d, Ks, cam_to_world)
-    ok = static[:, ::st, ::st] & (d > 0) & jnp.isfinite(d)
+    ok = static[:, ::st, ::st] & (d > 0) & jnp.isfinite(d) & (c > 0)
     thr = jnp.nanquantile(jnp.where(ok, c, jnp.nan), cfg.min_conf_quantile)
     ok = ok & (c >= thr)
     return SequenceCloud(points=pts.reshape(-1, 3), colors=images[:, ::st, ::st].reshape(-1, 3),

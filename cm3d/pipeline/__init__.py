@@ -7,7 +7,9 @@ from cm3d.pipeline.landmarks import advance_landmarks, landmark_observations, se
 from cm3d.pipeline.memory_graph import (MemoryStep, RecallReport, memory_refinement, memory_surface,  # noqa: F401
                                         recall_verify_update, sequence_query, window_entry)
 from cm3d.pipeline.prepare import Features, Inputs, pad_inputs, padded_length, prepare, scale_intrinsics  # noqa: F401
-from cm3d.pipeline.run import SequenceResult, WindowRecord, collect, recalled_earlier_map, run  # noqa: F401
+from cm3d.pipeline.photometric import PhotometricCheck, check_refinement, warp_errors  # noqa: F401
+from cm3d.pipeline.run import (RunReport, SequenceResult, WindowRecord, collect, prior_result,  # noqa: F401
+                               recalled_earlier_map, run)
 from cm3d.pipeline.state import (Landmarks, MapState, MemoryCursor, Window, begin_sequence,  # noqa: F401
                                  empty_landmarks, empty_window, init_state)
 from cm3d.pipeline.step import (StepOutputs, WindowResult, _run_sequence, buffer_frame, run_sequence,  # noqa: F401

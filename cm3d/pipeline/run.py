@@ -1,5 +1,10 @@
-"""The host side after the compiled scan: one :class:`WindowRecord` per window and a
-:class:`SequenceResult` per sequence (:func:`collect`), and the one-call API :func:`run`."""
+"""The host side around the compiled scan: one :class:`WindowRecord` per window and a
+:class:`SequenceResult` per sequence (:func:`collect`), and the one-call API :func:`run` with its
+checks: inputs with nothing to refine are not run (:func:`cm3d.data.quality.assess_input`), sensor
+holes are filled for the front end, and a refinement is kept only when the images do not agree
+with it worse than with the prior (:func:`cm3d.pipeline.photometric.check_refinement`; refused, the
+prior poses are the result and the windows' maps are still stored). A degenerate input stores
+nothing in the bank (:class:`RunReport`)."""
 
 from __future__ import annotations
 
@@ -11,8 +16,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from cm3d import memory
+from cm3d.data import quality
 from cm3d.pipeline.config import PipelineConfig
-from cm3d.pipeline.prepare import prepare
+from cm3d.pipeline.photometric import PhotometricCheck, check_refinement
+from cm3d.pipeline.prepare import Inputs, prepare
 from cm3d.pipeline.state import init_state
 from cm3d.pipeline.step import StepOutputs, run_sequence
 
@@ -97,16 +104,37 @@ def recalled_earlier_map(windows) -> bool:
     return any(w.accepted and w.recalled_map >= 0 and w.recalled_map not in created for w in windows)
 
 
+@dataclasses.dataclass(frozen=True)
+class RunReport:
+    """What :func:`run` decided for one sequence: the input's facts (``quality``), the photometric
+    check (None when the back end did not run), whether the refined poses were kept, whether the
+    bank holds what this sequence changed (``stored``) and the warnings a user should read."""
+
+    quality: quality.InputQuality | None
+    photometric: PhotometricCheck | None
+    refinement_kept: bool
+    stored: bool
+    warnings: tuple = ()
+
+    def to_json(self) -> dict:
+        return {"refinement_kept": self.refinement_kept, "stored_in_memory": self.stored,
+                "warnings": list(self.warnings),
+                "input": None if self.quality is None else self.quality.to_json(),
+                "photometric_check": None if self.photometric is None else self.photometric.to_json()}
+
+
 @dataclasses.dataclass
 class SequenceResult:
     """One sequence's results (numpy, input resolution): poses (S, 4, 4) refined cam_to_world, prior
-    (S, 4, 4), masks (S, H, W) dynamic, windows (one :class:`WindowRecord` each), the input sequence."""
+    (S, 4, 4), masks (S, H, W) dynamic, windows (one :class:`WindowRecord` each), the input sequence,
+    and :func:`run`'s :class:`RunReport` (None from :func:`collect` alone)."""
 
     poses: np.ndarray
     prior: np.ndarray
     masks: np.ndarray
     windows: list
     sequence: Any
+    report: RunReport | None = None
 
 
 def collect(outputs: StepOutputs, sequence, cfg: PipelineConfig = PipelineConfig()) -> SequenceResult:
@@ -127,10 +155,32 @@ def collect(outputs: StepOutputs, sequence, cfg: PipelineConfig = PipelineConfig
                           windows=windows, sequence=sequence)
 
 
+def prior_result(seq, q: quality.InputQuality) -> SequenceResult:
+    """The result of a sequence the back end did not run (degenerate input): the prior poses, no
+    dynamic pixel, no window; its report carries the reasons."""
+    prior = np.asarray(seq.cam_to_world, np.float64)
+    warnings = tuple(f"kept the prior, stored nothing: {p}" for p in q.problems)
+    return SequenceResult(poses=prior.copy(), prior=prior, masks=np.zeros(np.asarray(seq.depth).shape, bool),
+                          windows=[], sequence=seq, report=RunReport(q, None, False, False, warnings))
+
+
+def _without_hole_features(inputs: Inputs) -> Inputs:
+    """Keypoint features on pixels with confidence 0 (sensor holes, filled) are not lifted to 3D."""
+    f = inputs.features
+    h, w = inputs.frame.depth_conf.shape[1:]
+    r = np.clip(np.round(np.asarray(f.uv)[..., 1]).astype(np.int64), 0, h - 1)
+    c = np.clip(np.round(np.asarray(f.uv)[..., 0]).astype(np.int64), 0, w - 1)
+    conf = np.asarray(inputs.frame.depth_conf)
+    on_depth = np.take_along_axis(conf.reshape(len(conf), -1), r * w + c, axis=1) > 0
+    return inputs.replace(features=f.replace(valid=np.asarray(f.valid) & on_depth))
+
+
 def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBank | None = None,
-        progress=None) -> tuple[memory.MemoryBank, list[SequenceResult]]:
+        progress=None, checks: bool = True) -> tuple[memory.MemoryBank, list[SequenceResult]]:
     """The pipeline on one or several visits (sequences or paths any loader reads) threading one
-    memory bank (``bank``: one to start from); ``progress``: optional ``(stage, done, total)``.
+    memory bank (``bank``: one to start from); ``progress``: optional ``(stage, done, total)``;
+    ``checks``: skip degenerate inputs (prior kept, bank untouched) and refuse refinements the
+    images disagree with (prior kept; see the module docstring).
     Returns (the updated bank, one :class:`SequenceResult` per visit)."""
     from cm3d.data.loaders import load_input
 
@@ -139,10 +189,18 @@ def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBa
     state = None
     results = []
     for i, seq in enumerate(sequences):
+        source = f"sequence {i}"
         if not hasattr(seq, "depth"):
+            source = str(seq)
             seq = load_input(seq)
+        quality.check_runnable(seq, source)
+        q = quality.assess_input(seq) if checks else None
+        if q is not None and q.degenerate:
+            results.append(prior_result(seq, q))
+            continue
         cb = None if progress is None else (lambda d, n, i=i: progress(f"visit {i}: flow", d, n))
-        inputs = jax.tree.map(jnp.asarray, prepare(seq, cfg, progress=cb))
+        inputs = prepare(quality.fill_depth_holes(seq), cfg, progress=cb)
+        inputs = jax.tree.map(jnp.asarray, _without_hole_features(inputs))
         if state is None:
             state = init_state(inputs, cfg, bank)
         elif state.window.depth.shape[1:] != inputs.frame.depth.shape[1:]:
@@ -153,5 +211,13 @@ def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBa
         jax.block_until_ready(out)
         if progress is not None:
             progress(f"visit {i}: back end", 1, 1)
-        results.append(collect(out, seq, cfg))
+        res = collect(out, seq, cfg)
+        res.report = RunReport(q, None, True, True)
+        if checks:
+            ph = check_refinement(seq, res.prior, res.poses, res.masks)
+            warnings = () if ph.kept else (f"kept the prior poses: {ph.reason}",)
+            if not ph.kept:
+                res.poses = res.prior.copy()
+            res.report = RunReport(q, ph, ph.kept, True, warnings)
+        results.append(res)
     return (state.bank if state is not None else bank), results
