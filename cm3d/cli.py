@@ -107,6 +107,7 @@ def _load_inputs(paths, frames=None, prior_noise=None, seed=0):
     the overlapping chunks of one long video (a file holding a single chunk is one sequence).
     ``frames``: 7-Scenes frame selection; ``prior_noise``: VGGT-like priors from the ground truth."""
     from cm3d.data.loaders import load_input
+    from cm3d.data.quality import check_runnable
 
     if len(paths) == 1 and not _holds_chunks(paths[0]):
         from cm3d.data.sevenscenes import is_sevenscenes_folder
@@ -117,6 +118,7 @@ def _load_inputs(paths, frames=None, prior_noise=None, seed=0):
         elif frames is not None:
             raise ValueError("--frames: only for 7-Scenes folders")
         seq = load_input(paths[0], **kwargs)
+        check_runnable(seq, str(paths[0]))
         if prior_noise is not None:
             from cm3d.data.priors import priors_for
 
@@ -162,13 +164,14 @@ def _run(args) -> int:
     from cm3d import long_video as stitch
     from cm3d import memory, outputs, pipeline
 
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out}: exists and is not a folder")
-    bank = None
+    out = outputs.check_output_folder(args.out)  # fail before any work
     bank_path = Path(args.memory) if args.memory else None
-    if bank_path is not None and bank_path.exists():
-        bank, mem_cfg = memory.load(bank_path)
+    if bank_path is not None and not args.no_memory:
+        memory.check_bank_path(bank_path)
+    snap = memory.snapshot(bank_path) if bank_path is not None else memory.Snapshot("")
+    bank, mem_cfg = snap.bank, snap.cfg
+    if snap.note:
+        print(f"note: {snap.note}")
     seq, chunks = _load_inputs(args.inputs, args.frames, args.prior_noise, args.seed)
     H, W = (seq if seq is not None else chunks[0]).image_size
     changes = {"use_memory": not args.no_memory}
@@ -191,7 +194,11 @@ def _run(args) -> int:
         bank, (res,) = pipeline.run([seq], cfg, bank, progress=_Progress(not args.quiet))
     else:
         bank, res, facts = _run_chunks(chunks, cfg, bank, args)
-    m = outputs.write_results(out, res, bank if cfg.use_memory else None, pictures=not args.no_pictures)
+    commit = None
+    if bank_path is not None and cfg.use_memory:  # stored before the outputs: a failed write loses no map
+        _, commit = memory.commit(bank_path, snap, bank, cfg.memory)
+    m = outputs.write_results(out, res, bank if cfg.use_memory else None, pictures=not args.no_pictures,
+                              commit=commit)
     if chunks is not None:
         outputs.write_json(out / "stitch.json", facts)
         fr = facts["frame_refinement"]
@@ -199,16 +206,13 @@ def _run(args) -> int:
               f"chunks, {sum(lc['kept'] for lc in facts['loops'])} kept by the pose graph's consistency check; "
               f"whole-trajectory refinement {'kept' if fr['kept'] else 'refused: ' + fr.get('reason', 'self-check')}"
               + (f" ({fr['pairs_used']} of {fr['pairs']} frame pairs)" if "pairs" in fr else ""))
-    if bank_path is not None and cfg.use_memory:
-        memory.save(bank, bank_path, cfg.memory)
     for w in res.windows:
         print("  " + outputs.window_line(w))
+    for w in (res.report.warnings if res.report is not None else ()):
+        print(f"warning: {w}")
     if m:
-        p, r = m["prior"], m["refined"]
-        print(f"ATE prior {p['ate']:.5f} -> refined {r['ate']:.5f} ({-m['ate_reduction_pct']:+.1f} %), "
-              f"RPE trans {p['rpe_trans']:.5f} -> {r['rpe_trans']:.5f}, "
-              f"mask IoU {m.get('mask', {}).get('iou', float('nan')):.3f}")
-    saved = f"; memory bank {bank_path} ({int(bank.num_maps)} maps)" if bank_path and cfg.use_memory else ""
+        print(outputs.headline(m))
+    saved = f"; {outputs.commit_line(commit)}" if commit is not None else ""
     print(f"wrote {out}/ (trajectory.txt, trajectory_prior.txt, masks/, static_map.ply, recall.json"
           f"{', metrics.json' if m else ''}{', stitch.json' if chunks is not None else ''}"
           f"{'' if args.no_pictures else ', pictures'}){saved}")
@@ -230,7 +234,10 @@ def _memory(args) -> int:
 
     from cm3d import memory
 
-    bank, cfg = memory.load(args.bank)
+    stored = memory.read(args.bank)
+    bank, cfg = stored.bank, stored.cfg
+    if stored.note:
+        print(f"note: {stored.note}", file=sys.stderr)
     valid = np.asarray(bank.map_valid)
     if args.action == "ls":
         print(f"{args.bank}: {int(valid.sum())} of {cfg.max_maps} maps "
@@ -249,7 +256,7 @@ def _memory(args) -> int:
         print(json.dumps({"map_id": int(m), **memory.map_counts(bank, m), "bounds_min": lo.round(4).tolist(),
                           "bounds_max": hi.round(4).tolist()}, indent=1))
         return 0
-    memory.save(memory.remove_map(bank, m), args.bank, cfg)
+    memory.modify(args.bank, lambda b, c: memory.remove_map(b, m))
     print(f"removed map {m} from {args.bank}")
     return 0
 
