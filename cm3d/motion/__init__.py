@@ -18,6 +18,6 @@ from cm3d.motion.keypoint_cue import (  # noqa: F401
     candidate_regions, dynamic_keypoints, keypoint_displacements, robust_motion_cue, static_reference
 )
 from cm3d.motion.occlusion import (  # noqa: F401
-    bilinear_sample, depth_range_residual, forward_backward_consistent, visible_in_partner
+    depth_range_residual, forward_backward_consistent, visible_in_partner
 )
 from cm3d.motion.track_cue import moving_from_residuals, moving_tracks, segment_median, track_residuals  # noqa: F401

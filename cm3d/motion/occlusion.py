@@ -20,19 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from cm3d.ops import camera, se3
-
-
-def bilinear_sample(image, uv):
-    """Bilinear samples (..., C) of ``image`` (H, W, C) at pixels ``uv`` (..., 2), clamped to the image."""
-    H, W = image.shape[:2]
-    x = jnp.clip(uv[..., 0], 0.0, W - 1.0)
-    y = jnp.clip(uv[..., 1], 0.0, H - 1.0)
-    x0 = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, W - 2)
-    y0 = jnp.clip(jnp.floor(y).astype(jnp.int32), 0, H - 2)
-    fx, fy = (x - x0)[..., None], (y - y0)[..., None]
-    a, b = image[y0, x0], image[y0, x0 + 1]
-    c, d = image[y0 + 1, x0], image[y0 + 1, x0 + 1]
-    return (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
+from cm3d.trajectory import bilinear
 
 
 def forward_backward_consistent(flow, flow_back, alpha: float = 0.01, beta_px2: float = 0.5):
@@ -43,7 +31,7 @@ def forward_backward_consistent(flow, flow_back, alpha: float = 0.01, beta_px2: 
     """
     H, W = flow.shape[:2]
     tgt = camera.pixel_grid(H, W, flow.dtype) + flow
-    back = bilinear_sample(flow_back, tgt)
+    back = bilinear(flow_back[None], jnp.zeros(H * W, jnp.int32), tgt.reshape(-1, 2)).reshape(H, W, 2)
     err = jnp.sum((flow + back) ** 2, -1)
     tol = alpha * (jnp.sum(flow ** 2, -1) + jnp.sum(back ** 2, -1)) + beta_px2
     inside = (tgt[..., 0] >= 0) & (tgt[..., 0] <= W - 1) & (tgt[..., 1] >= 0) & (tgt[..., 1] <= H - 1)
