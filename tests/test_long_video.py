@@ -243,7 +243,9 @@ def test_recall_loops_from_window_records(noise_free):
     lc = stitch.LoopClosure(chunk=1, other=0, frames=(0, OVERLAP - 1), transform=T, inliers=50, rmse=0.01,
                             other_frames=(CHUNK - OVERLAP, CHUNK - 1))
     fixed = stitch.loop_to_prior_frames(lc, chunks, res)
-    np.testing.assert_allclose(fixed.transform, np.linalg.inv(Q[0]) @ T @ Q[1], atol=1e-6)
+    # the frame changes are float32 fits (align_overlap) of clouds ~1 unit across: a few float32 ulps
+    # of the 2x-scaled rotation entries (~1.6e-6 seen in CI), far below any pose-graph effect
+    np.testing.assert_allclose(fixed.transform, np.linalg.inv(Q[0]) @ T @ Q[1], atol=1e-5)
     np.testing.assert_array_equal(fixed.measured, T)
     with pytest.raises(stitch.StitchError, match="creating window"):
         stitch.loop_to_prior_frames(dataclasses.replace(lc, other_frames=None), chunks, res)
