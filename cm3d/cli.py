@@ -46,10 +46,16 @@ def _eval(args) -> int:
         print(json.dumps(m))
     else:
         print(f"pairs      {m['pairs']}")
-        print(f"ATE (Sim3) {m['ate']:.6f}")
+        print(f"extent     {m['extent']:.6f}")
+        if m["ate_defined"]:
+            print(f"ATE (Sim3) {m['ate']:.6f}")
+        else:
+            print(f"ATE (Sim3) undefined: {m['ate']:.6f}, but the ground truth's extent is below the estimate's noise "
+                  "(a Sim(3) fit shrinks any estimate towards its centroid); read ATE (SE3) and the rotation error")
         print(f"ATE (SE3)  {m['ate_se3']:.6f}")
         print(f"RPE trans  {m['rpe_trans']:.6f}")
         print(f"RPE rot    {m['rpe_rot']:.6f} deg")
+        print(f"rotation   {m['rot_rmse']:.6f} deg (RMSE after the best global rotation, whatever the positions)")
     return 0
 
 
@@ -341,7 +347,8 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     try:
         rc = args.func(args)
-    except (ValueError, FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError) as err:
+    except (ValueError, FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError,
+            TimeoutError) as err:  # TimeoutError: another process holds the memory bank's lock
         print(f"cm3d {args.command}: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -110,16 +110,9 @@ def static_map(seq, poses: np.ndarray, masks: np.ndarray, stride: int = 4, voxel
 def _trajectory_metrics(ts, gt, est) -> dict:
     """ATE (Sim3, SE3), RPE, the alignment-free rotation error (deg), the ground truth's extent and
     whether the Sim(3) ATE is defined (:func:`cm3d.eval.metrics.ate_is_defined`)."""
-    import jax
-
     from cm3d.eval import metrics
 
-    m = metrics.evaluate_trajectories(ts, gt, ts, est)
-    with jax.enable_x64(True):
-        m["rot_rmse"] = float(metrics.rotation_rmse(np.asarray(est, np.float64), np.asarray(gt, np.float64)))
-    m["extent"] = metrics.trajectory_extent(gt)
-    m["ate_defined"] = metrics.ate_is_defined(m["ate"], m["extent"], m["pairs"])
-    return m
+    return metrics.evaluate_trajectories(ts, gt, ts, est)
 
 
 def sequence_metrics(result) -> dict | None:

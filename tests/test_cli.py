@@ -16,7 +16,8 @@ def test_eval_json_matches_evo_reference(shared_data, capsys):
     rc = cli.main(["eval", "--gt", str(d / "fr2_desk_groundtruth.txt"), "--est", str(d / "fr2_desk_ORB.txt"), "--json"])
     assert rc == 0
     m = json.loads(capsys.readouterr().out)
-    assert set(m) == {"ate", "ate_se3", "rpe_trans", "rpe_rot", "pairs"}
+    assert set(m) == {"ate", "ate_se3", "rpe_trans", "rpe_rot", "rot_rmse", "extent", "ate_defined", "pairs"}
+    assert m["ate_defined"] and m["extent"] > 0.1
     # figures from evo 1.38.1 (../shared/data/README.md)
     np.testing.assert_allclose([m["ate"], m["ate_se3"], m["rpe_trans"], m["rpe_rot"]],
                                [0.006123, 0.008119, 0.003485, 0.280519], atol=1e-6)

@@ -363,6 +363,42 @@ def test_unwritable_out_and_bank_fail_before_any_work(tmp_path, capsys):
     assert err.count("\n") == 1 and "--memory" in err and "is not a folder" in err
 
 
+def test_a_held_bank_lock_is_a_one_line_error(tmp_path, empty_bank, capsys, monkeypatch):
+    import functools
+
+    from cm3d.data import atomic
+    from cm3d.memory import transaction
+
+    path = tmp_path / "bank.cm3d"
+    memory.save(with_map(empty_bank, 0), path, CFG)
+    monkeypatch.setattr(transaction, "locked", functools.partial(atomic.locked, timeout=0.2))
+    with atomic.locked(path):  # another writer (a second open file: flock conflicts within one process too)
+        assert cli.main(["memory", "rm", str(path), "0"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "bank.cm3d.lock" in err and "another process" in err
+    assert cli.main(["memory", "rm", str(path), "0"]) == 0  # released: the same command goes through
+
+
+def test_eval_flags_an_undefined_ate(tmp_path, capsys):
+    from cm3d.data.tum import write_tum
+
+    rng = np.random.default_rng(0)
+    gt = np.tile(np.eye(4), (8, 1, 1))
+    gt[:, 0, 3] = 1e-6 * np.arange(8)
+    est = _rotated(gt, 2.87, rng)
+    est[:, :3, 3] += 0.01 * rng.normal(size=(8, 3))
+    ts = np.arange(8) * 0.1
+    write_tum(tmp_path / "gt.txt", ts, gt)
+    write_tum(tmp_path / "est.txt", ts, est)
+    args = ["eval", "--gt", str(tmp_path / "gt.txt"), "--est", str(tmp_path / "est.txt")]
+    assert cli.main(args) == 0
+    out = capsys.readouterr().out
+    assert "ATE (Sim3) undefined" in out and "rotation" in out
+    assert cli.main(args + ["--json"]) == 0
+    m = json.loads(capsys.readouterr().out)
+    assert m["ate_defined"] is False and 2.0 < m["rot_rmse"] < 4.0 and m["extent"] < 1e-5
+
+
 def test_messages_name_the_file_and_the_problem(tmp_path, capsys):
     text = tmp_path / "notes.npz"
     text.write_text("these are my notes\n")

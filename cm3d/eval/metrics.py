@@ -232,7 +232,9 @@ def associate(ts_ref, ts_est, max_diff: float = 0.01) -> tuple[np.ndarray, np.nd
 
 
 def evaluate_trajectories(gt_ts, gt_c2w, est_ts, est_c2w, max_diff: float = 0.01) -> dict:
-    """Associate, then ATE/RPE in float64 -> dict(ate, ate_se3, rpe_trans, rpe_rot: float, pairs: int).
+    """Associate, then ATE/RPE in float64 -> dict(ate, ate_se3, rpe_trans, rpe_rot, rot_rmse (deg,
+    after the best global rotation: :func:`rotation_rmse`), extent (the ground truth's, :func:`trajectory_extent`):
+    float, ate_defined (:func:`ate_is_defined`): bool, pairs: int).
 
     By timestamp as evo (:func:`associate`); when both have the same length and no stamp matches
     (e.g. MonST3R's frame-index stamps) frame i pairs with frame i. ``ValueError`` below 2 pairs.
@@ -252,7 +254,10 @@ def evaluate_trajectories(gt_ts, gt_c2w, est_ts, est_c2w, max_diff: float = 0.01
     with jax.enable_x64(True):
         m = _pose_metrics_jit(jnp.asarray(est_c2w[i_est]), jnp.asarray(gt_c2w[i_gt]))
         out = {k: float(m[k]) for k in ("ate", "ate_se3", "rpe_trans", "rpe_rot")}
+        out["rot_rmse"] = float(rotation_rmse(jnp.asarray(est_c2w[i_est]), jnp.asarray(gt_c2w[i_gt])))
     out["pairs"] = int(len(i_gt))
+    out["extent"] = trajectory_extent(gt_c2w[i_gt])
+    out["ate_defined"] = ate_is_defined(out["ate"], out["extent"], out["pairs"])
     return out
 
 
