@@ -141,7 +141,7 @@ def _load_inputs(paths, frames=None, prior_noise=None, seed=0):
     return None, chunks
 
 
-def _run_chunks(chunks, cfg, bank, args):
+def _run_chunks(chunks, cfg, bank, args, recorder=None):
     """The chunks of one long video: the pipeline over every chunk threading one memory bank, Sim(3)
     overlap alignment, loop closures from recalls across chunks, the
     Sim(3) pose graph, then the whole-trajectory refinement (:func:`cm3d.long_video.stitch_with_memory`).
@@ -149,9 +149,13 @@ def _run_chunks(chunks, cfg, bank, args):
     from cm3d import long_video as stitch
 
     bars = _Progress(not args.quiet)
+    chunk_facts = []
     st = stitch.stitch_with_memory(chunks, pipeline_config=cfg, bank=bank,
-                                   progress=lambda stage, done, n: bars(stage.replace("visit", "chunk"), done, n))
+                                   progress=lambda stage, done, n: bars(stage.replace("visit", "chunk"), done, n),
+                                   observe=None if recorder is None else recorder.chunk_observer(cfg, chunk_facts))
     res = stitch.memory_sequence_result(st, chunks)
+    if recorder is not None:
+        recorder.long_video(st, res, chunk_facts, cfg)
     f = st.refinement
     facts = {"ranges": st.ranges, "chunk_transforms": st.chunk_transforms, "refined": st.refined,
              "boundaries": [dataclasses.asdict(b) for b in st.boundaries],
@@ -171,6 +175,10 @@ def _run(args) -> int:
     from cm3d import memory, outputs, pipeline
 
     out = outputs.check_output_folder(args.out)  # fail before any work
+    if args.rerun:
+        from cm3d import viz
+
+        viz.check_recording_path(args.rerun)
     bank_path = Path(args.memory) if args.memory else None
     if bank_path is not None and not args.no_memory:
         memory.check_bank_path(bank_path)
@@ -196,10 +204,24 @@ def _run(args) -> int:
             f"{len(chunks)} chunks ({', '.join(str(c.num_frames) for c in chunks)} frames)")
     print(f"{what} at {H}x{W}; windows of {cfg.keyframe_interval} frames; memory "
           f"{'off' if args.no_memory else (str(bank_path) if bank_path else 'in-process only')}")
-    if chunks is None:
-        bank, (res,) = pipeline.run([seq], cfg, bank, progress=_Progress(not args.quiet))
-    else:
-        bank, res, facts = _run_chunks(chunks, cfg, bank, args)
+    recorder = None
+    if args.rerun:
+        from cm3d.viz.record import Recorder
+
+        recorder = Recorder(args.rerun, bank)
+    try:
+        if chunks is None:
+            bank, (res,) = pipeline.run([seq], cfg, bank, progress=_Progress(not args.quiet),
+                                        observe=None if recorder is None else recorder.observe(cfg))
+        else:
+            bank, res, facts = _run_chunks(chunks, cfg, bank, args, recorder)
+    except BaseException:
+        if recorder is not None:
+            recorder.abort()
+        raise
+    if recorder is not None:
+        rrd = recorder.close()
+        print(f"recording {rrd} ({rrd.stat().st_size / 1e6:.1f} MB; cm3d view {rrd})")
     commit = None
     if bank_path is not None and cfg.use_memory:  # stored before the outputs: a failed write loses no map
         _, commit = memory.commit(bank_path, snap, bank, cfg.memory)
@@ -228,10 +250,21 @@ def _run(args) -> int:
 def _demo(args) -> int:
     from cm3d.demo import run_demo
 
+    if args.rerun:
+        from cm3d import viz
+
+        viz.check_recording_path(args.rerun)
     _compile_cache()
     run_demo(scene=args.scene, visits=args.visits, frames=args.frames, quick=args.quick,
              json_path=args.json, out=args.out, height=args.height, width=args.width,
-             progress=_Progress(not args.quiet))
+             progress=_Progress(not args.quiet), rerun=args.rerun)
+    return 0
+
+
+def _view(args) -> int:
+    from cm3d import viz
+
+    print(viz.view(args.recording))
     return 0
 
 
@@ -317,6 +350,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--seed", type=int, default=0, help="seed of --prior-noise")
     r.add_argument("--no-pictures", action="store_true", help="skip the PNG pictures")
     r.add_argument("--quiet", action="store_true", help="no progress bars")
+    r.add_argument("--rerun", default=None, metavar="RRD", help="also write a Rerun recording of every stage "
+                   "(needs the viz extra: pip install -e '.[viz]'); open it with cm3d view RRD")
     r.set_defaults(func=_run)
 
     d = sub.add_parser("demo", help="the full pipeline on a multi-visit synthetic world, with one memory",
@@ -332,7 +367,12 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--quick", action="store_true", help="tiny images, for smoke tests")
     d.add_argument("--json", default=None, metavar="PATH", help="also write the table as JSON")
     d.add_argument("--quiet", action="store_true", help="no progress bars")
+    d.add_argument("--rerun", default=None, metavar="RRD", help="also write a Rerun recording of every visit")
     d.set_defaults(func=_demo)
+
+    v = sub.add_parser("view", help="open a Rerun recording (--rerun) in the viewer, or say how to open it")
+    v.add_argument("recording", metavar="RRD", help="a .rrd file written by cm3d run/demo --rerun")
+    v.set_defaults(func=_view)
 
     m = sub.add_parser("memory", help="list, show or remove maps of a memory bank file")
     m.add_argument("action", choices=["ls", "show", "rm"])

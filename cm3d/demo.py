@@ -28,8 +28,9 @@ def format_table(rows: list[dict]) -> str:
 
 def run_demo(scene: int = 0, visits: int = 3, frames: int | None = None, quick: bool = False,
              json_path: str | None = None, out: str | None = "out/demo", height: int | None = None,
-             width: int | None = None, progress=None) -> list[dict]:
-    """Run the demo; returns one row of metrics per visit (also written as JSON to ``json_path``)."""
+             width: int | None = None, progress=None, rerun: str | None = None) -> list[dict]:
+    """Run the demo; returns one row of metrics per visit (also written as JSON to ``json_path``);
+    ``rerun``: also record every visit into this ``.rrd`` file (:mod:`cm3d.viz`)."""
     import json
 
     from cm3d import memory, outputs, pipeline
@@ -44,6 +45,11 @@ def run_demo(scene: int = 0, visits: int = 3, frames: int | None = None, quick: 
     cfg = pipeline.config_for(H, W)
     print(f"scene {scene}: {visits} visits x {S} frames at {H}x{W}, moderate prior noise; "
           f"windows of {cfg.keyframe_interval} frames, one memory bank across visits")
+    recorder = None
+    if rerun:
+        from cm3d.viz.record import Recorder
+
+        recorder = Recorder(rerun)
     t0 = time.perf_counter()
     seqs = []
     for v in range(visits):
@@ -55,7 +61,8 @@ def run_demo(scene: int = 0, visits: int = 3, frames: int | None = None, quick: 
     out_dir = None if out is None else Path(out)
     for v, seq in enumerate(seqs):
         t1 = time.perf_counter()
-        bank, (res,) = pipeline.run([seq], cfg, bank, progress=progress)
+        observe = None if recorder is None else recorder.observe(cfg, visit=v)
+        bank, (res,) = pipeline.run([seq], cfg, bank, progress=progress, observe=observe)
         dt = time.perf_counter() - t1
         if out_dir is not None:
             outputs.write_results(out_dir / f"visit{v:02d}", res, bank)
@@ -82,6 +89,9 @@ def run_demo(scene: int = 0, visits: int = 3, frames: int | None = None, quick: 
           f"({red:.1f} % lower); revisits recalled: {sum(r['recalled'] == 'yes' for r in rows[1:])} of {len(rows) - 1}")
     if out_dir is not None:
         print(f"outputs in {out_dir}/visitNN/ and the bank in {out_dir / 'memory.cm3d'}")
+    if recorder is not None:
+        path = recorder.close()
+        print(f"recording {path} ({path.stat().st_size / 1e6:.1f} MB; cm3d view {path})")
     if json_path:
         with atomic_write(json_path, "w") as f:
             json.dump([{**r, "windows": [w.to_json() for w in r["windows"]]} for r in rows], f, indent=1)

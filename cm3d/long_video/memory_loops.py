@@ -88,14 +88,15 @@ def memory_config_for_chunks(height: int, width: int, chunk_lengths, **changes):
 def stitch_with_memory(chunks, overlap: int | None = None, config: StitchConfig = StitchConfig(),
                        pipeline_config=None, bank=None, graph: PoseGraphConfig = PoseGraphConfig(),
                        progress=None, refine: bool = True, frame_config: FrameGraphConfig = FrameGraphConfig(),
-                       results=None) -> StitchResult:
+                       results=None, observe=None) -> StitchResult:
     """Stitch chunks with memory recall across them, then refine the whole trajectory.
 
     Run every chunk with one memory bank; align consecutive chunks on their shared frames; put loops
     and overlaps in the Sim(3) pose graph (inconsistent loops left out); place and fuse the chunks;
     ``refine``: :func:`cm3d.long_video.refine_frames`, kept when it passes its self-check.
     pipeline_config: None for :func:`memory_config_for_chunks`; bank: a bank to start from; progress:
-    optional ``(stage, done, total)``; results: per-chunk results of an earlier call (skips the runs).
+    optional ``(stage, done, total)``; results: per-chunk results of an earlier call (skips the runs);
+    observe: passed to :func:`cm3d.pipeline.run` (called after each chunk).
     Returns :class:`StitchResult` (method ``"cm3d-memory"``, with ``loops``, ``bank``, ``results``;
     ``refinement`` has the pose graph's per-loop facts, ``poses_stitched`` and ``frames``).
     """
@@ -107,7 +108,7 @@ def stitch_with_memory(chunks, overlap: int | None = None, config: StitchConfig 
     cfg = pipeline_config or memory_config_for_chunks(H, W, [c.num_frames for c in chunks])
     t0 = time.perf_counter()
     if results is None:
-        bank, results = pipeline.run(list(chunks), cfg, bank, progress=progress)
+        bank, results = pipeline.run(list(chunks), cfg, bank, progress=progress, observe=observe)
     t_pipe = time.perf_counter() - t0
     A, G0, bounds = align_boundaries(chunks, ranges, overlaps, config)
     loops = [loop_to_prior_frames(lc, chunks, results, config) for lc in recall_loops(results)]

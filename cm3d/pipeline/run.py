@@ -60,6 +60,7 @@ class WindowRecord:
     observations: int
     inliers: int
     lm_iterations: int
+    lm_cost: float = float("nan")
     chunk: int | None = None
 
     @classmethod
@@ -80,7 +81,7 @@ class WindowRecord:
             landmarks=int(w.landmarks), memory_landmarks=int(w.memory_landmarks), memory_used=bool(w.memory_used),
             memory_stat=float(w.memory_stat), memory_threshold=float(w.memory_threshold),
             inconsistent_tracks=int(w.inconsistent), observations=int(w.observations), inliers=int(w.inliers),
-            lm_iterations=int(w.iterations))
+            lm_iterations=int(w.iterations), lm_cost=float(w.cost))
 
     def to_json(self) -> dict:
         """A JSON-ready dict (lists, Python numbers; transforms rounded to 6 decimals); ``chunk`` only
@@ -176,11 +177,14 @@ def _without_hole_features(inputs: Inputs) -> Inputs:
 
 
 def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBank | None = None,
-        progress=None, checks: bool = True) -> tuple[memory.MemoryBank, list[SequenceResult]]:
+        progress=None, checks: bool = True, observe=None) -> tuple[memory.MemoryBank, list[SequenceResult]]:
     """The pipeline on one or several visits (sequences or paths any loader reads) threading one
     memory bank (``bank``: one to start from); ``progress``: optional ``(stage, done, total)``;
     ``checks``: skip degenerate inputs (prior kept, bank untouched) and refuse refinements the
-    images disagree with (prior kept; see the module docstring).
+    images disagree with (prior kept; see the module docstring); ``observe``: optional
+    ``(index, inputs, outputs, result, bank)`` called on the host after each sequence with its
+    NumPy :class:`Inputs` and :class:`StepOutputs` (both None when the back end did not run) and the
+    bank after it (what ``--rerun`` records).
     Returns (the updated bank, one :class:`SequenceResult` per visit)."""
     from cm3d.data.loaders import load_input
 
@@ -197,10 +201,12 @@ def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBa
         q = quality.assess_input(seq) if checks else None
         if q is not None and q.degenerate:
             results.append(prior_result(seq, q))
+            if observe is not None:
+                observe(i, None, None, results[-1], state.bank if state is not None else bank)
             continue
         cb = None if progress is None else (lambda d, n, i=i: progress(f"visit {i}: flow", d, n))
-        inputs = prepare(quality.fill_depth_holes(seq), cfg, progress=cb)
-        inputs = jax.tree.map(jnp.asarray, _without_hole_features(inputs))
+        host_inputs = _without_hole_features(prepare(quality.fill_depth_holes(seq), cfg, progress=cb))
+        inputs = jax.tree.map(jnp.asarray, host_inputs)
         if state is None:
             state = init_state(inputs, cfg, bank)
         elif state.window.depth.shape[1:] != inputs.frame.depth.shape[1:]:
@@ -220,4 +226,6 @@ def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBa
                 res.poses = res.prior.copy()
             res.report = RunReport(q, ph, ph.kept, True, warnings)
         results.append(res)
+        if observe is not None:
+            observe(i, host_inputs, jax.tree.map(np.asarray, out), res, state.bank)
     return (state.bank if state is not None else bank), results

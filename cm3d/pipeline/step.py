@@ -19,13 +19,15 @@ from cm3d.pipeline.landmarks import advance_landmarks, nearest_pixel, seed_landm
 from cm3d.pipeline.memory_graph import MemoryStep, RecallReport, recall_verify_update
 from cm3d.pipeline.prepare import Inputs
 from cm3d.pipeline.state import Landmarks, MapState, MemoryCursor, Window, begin_sequence
-from cm3d.pipeline.window import factor_graph
+from cm3d.pipeline.window import factor_graph, rescale_window
 
 
 @struct.dataclass
 class WindowResult:
     """One window's result: final poses (W, 4, 4), frame index (W,), valid (W,), the gate, graph
-    counts, the :class:`RecallReport`, dropped tracks, the memory solution's use and χ² test."""
+    counts, the :class:`RecallReport`, dropped tracks, the memory solution's use and χ² test; the
+    memory-free graph's final LM ``cost`` and its landmarks ``points`` (L, 3) at the prior depth's
+    scale with ``point_valid`` (L,) (the tracks in the graph)."""
 
     poses: Any
     index: Any
@@ -43,9 +45,12 @@ class WindowResult:
     memory_used: Any
     memory_stat: Any
     memory_threshold: Any
+    cost: Any
+    points: Any
+    point_valid: Any
 
     @classmethod
-    def empty(cls, cfg: PipelineConfig, top_k: int) -> "WindowResult":
+    def empty(cls, cfg: PipelineConfig, top_k: int, num_landmarks: int) -> "WindowResult":
         """The result of a frame that ends no window."""
         W = cfg.window
         z = jnp.zeros((), jnp.int32)
@@ -53,7 +58,9 @@ class WindowResult:
                    valid=jnp.zeros(W, bool), refined=jnp.zeros((), bool), gate_stat=jnp.zeros(()),
                    gate_threshold=jnp.zeros(()), observations=z, inliers=z, landmarks=z, memory_landmarks=z,
                    iterations=z, recall=RecallReport.empty(top_k), inconsistent=z,
-                   memory_used=jnp.zeros((), bool), memory_stat=jnp.zeros(()), memory_threshold=jnp.zeros(()))
+                   memory_used=jnp.zeros((), bool), memory_stat=jnp.zeros(()), memory_threshold=jnp.zeros(()),
+                   cost=jnp.zeros(()), points=jnp.zeros((num_landmarks, 3), jnp.float32),
+                   point_valid=jnp.zeros(num_landmarks, bool))
 
 
 @struct.dataclass
@@ -101,6 +108,9 @@ def window_end(bank: memory.MemoryBank, cursor: MemoryCursor, key, win: Window, 
     (:func:`~cm3d.pipeline.memory_graph.recall_verify_update`). Returns (bank, cursor, WindowResult)."""
     ref, poses, obs, n_bad = factor_graph(win, lm_, cfg)
     poses = poses.astype(jnp.float32)
+    in_graph = obs.valid.reshape(lm_.obs_valid.shape)[:, 0]
+    points = jnp.where(ref.refined, rescale_window(ref.poses, ref.points, win.poses, lm_.points, lm_.seed,
+                                                   in_graph)[1], ref.points)
     if cfg.use_memory:
         bank, cursor, mem = recall_verify_update(bank, cursor, key, win, lm_, ref, poses, obs, mem_cfg, cfg)
     else:
@@ -112,7 +122,9 @@ def window_end(bank: memory.MemoryBank, cursor: MemoryCursor, key, win: Window, 
                        landmarks=jnp.sum(obs.valid.reshape(lm_.obs_valid.shape)[:, 0]).astype(jnp.int32),
                        memory_landmarks=mem.landmarks, iterations=ref.result.iterations.astype(jnp.int32),
                        recall=mem.report, inconsistent=n_bad.astype(jnp.int32), memory_used=mem.used,
-                       memory_stat=mem.stat, memory_threshold=mem.threshold)
+                       memory_stat=mem.stat, memory_threshold=mem.threshold,
+                       cost=ref.result.cost.astype(jnp.float32), points=points.astype(jnp.float32),
+                       point_valid=in_graph)
     return bank, cursor, res
 
 
@@ -155,7 +167,8 @@ def step(state: MapState, inputs_t: Inputs, cfg: PipelineConfig = PipelineConfig
     key, sub = jax.random.split(state.key)
     st, res = jax.lax.cond(end, functools.partial(_close_window, key=sub, s=s, frame_prior=f.cam_to_world,
                                                   mem_cfg=mem_cfg, cfg=cfg),
-                           lambda m: (m, WindowResult.empty(cfg, mem_cfg.top_k)), st)
+                           lambda m: (m, WindowResult.empty(cfg, mem_cfg.top_k, state.landmarks.points.shape[0])),
+                           st)
     slot = jnp.where(end, 0, s)
 
     # seed landmarks at the seeding slots (slot 0 of a new window is this frame again)

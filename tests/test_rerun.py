@@ -1,0 +1,102 @@
+"""cm3d.viz: the demo's Rerun recording read back (entity paths, frames on the timeline, the
+recalled memory, the three trajectories), ``cm3d view`` without a display, and a core free of rerun.
+
+One quick demo for the module: scene 2, 8 visits of 8 frames at 48x64, the only quick setting found
+that recalls (scenes 0-59 with 4 visits recall nothing at this size): visit 7's second window
+recalls map 0. It shares the compiled pipeline with the other 48x64, 8-frame tests."""
+
+import collections
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rerun")
+from rerun.chunk import RrdReader  # noqa: E402
+
+from cm3d import cli  # noqa: E402
+from cm3d.demo import run_demo  # noqa: E402
+
+VISITS, FRAMES = 8, 8
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    rrd = tmp_path_factory.mktemp("rerun") / "demo.rrd"
+    rows = run_demo(scene=2, visits=VISITS, quick=True, out=None, rerun=str(rrd))
+    rows_by_entity = collections.defaultdict(list)  # entity -> [(frame, visit, {column: value})]
+    for chunk in RrdReader(rrd).stream():
+        b = chunk.to_record_batch()
+        cols = {n: b.column(n).to_pylist() for n in b.schema.names}
+        for r in range(chunk.num_rows):
+            rows_by_entity[chunk.entity_path].append(
+                (cols.get("frame", [None] * chunk.num_rows)[r], cols.get("visit", [None] * chunk.num_rows)[r],
+                 {n: v[r] for n, v in cols.items()}))
+    return rrd, rows, rows_by_entity
+
+
+def test_recording_holds_every_stage(demo):
+    rrd, _, ents = demo
+    expected = {"/world/camera", "/world/camera/image", "/world/camera/image/dynamic", "/frame/image",
+                "/frame/depth", "/frame/confidence", "/frame/dynamic", "/frame/cues/flow_gmm",
+                "/frame/cues/geometry", "/frame/cues/residual", "/frame/cues/keypoints/kept",
+                "/frame/cues/keypoints/rejected", "/world/trajectory/prior", "/world/trajectory/refined",
+                "/world/trajectory/ground_truth", "/world/map/new", "/world/memory/recalled", "/world/landmarks",
+                "/log/recall", "/plots/ate_so_far/refined", "/plots/lm_cost", "/plots/cue_agreement"}
+    assert expected <= set(ents), expected - set(ents)
+    assert rrd.stat().st_size < 5e6
+    # images are logged compressed; the pinhole is the image's size
+    row = ents["/world/camera/image"][-1][2]
+    assert "image/jpeg" in str(row.get("EncodedImage:media_type"))
+    # the host-recomputed cues reproduce the pipeline's mask
+    assert min(r[2]["Scalars:scalars"][0] for r in ents["/plots/cue_agreement"]) > 0.99
+
+
+def test_frames_on_the_timeline_and_windows_logged(demo):
+    _, rows, ents = demo
+    frames = {f for f, _, _ in ents["/world/camera/image/dynamic"]}
+    assert frames == set(range(VISITS * FRAMES))
+    assert {v for _, v, _ in ents["/world/camera"]} == set(range(VISITS))
+    windows = sum(len(r["windows"]) for r in rows)
+    assert len(ents["/log/recall"]) == len(ents["/plots/lm_cost"]) == windows
+    assert all(np.isfinite(r[2]["Scalars:scalars"][0]) for r in ents["/plots/lm_cost"])
+    lms = [r[2]["Points3D:positions"] for r in ents["/world/landmarks"] if r[2].get("Points3D:positions")]
+    assert len(lms) == windows and all(len(p) > 0 for p in lms)
+
+
+def test_memory_points_on_the_recalled_visit(demo):
+    _, rows, ents = demo
+    recalled = [r["visit"] for r in rows if r["recalled"] == "yes"]
+    assert recalled == [7]
+    mem = [(v, r) for _, v, r in ents["/world/memory/recalled"] if r.get("Points3D:positions")]
+    assert [v for v, _ in mem] == recalled and len(mem[0][1]["Points3D:positions"]) > 50
+    text = {v: " ".join(t for _, w, r in ents["/log/recall"] if w == v for t in r["TextLog:text"])
+            for v in range(VISITS)}
+    assert "ACCEPTED map 0" in text[7] and "not accepted" in text[1] and "candidates [0]" in text[1]
+
+
+def test_three_trajectories_have_the_frames_so_far(demo):
+    _, _, ents = demo
+    for name in ("prior", "refined", "ground_truth"):
+        strips = [(f, r["LineStrips3D:strips"]) for f, _, r in ents[f"/world/trajectory/{name}"]
+                  if r.get("LineStrips3D:strips")]
+        assert len(strips) == VISITS * FRAMES
+        assert all(len(s[0]) == f % FRAMES + 1 for f, s in strips), name
+
+
+def test_view_without_a_display_says_how(demo, monkeypatch, capsys):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert cli.main(["view", str(demo[0])]) == 0
+    out = capsys.readouterr().out
+    assert "no display here" in out and "--web-viewer" in out
+    assert cli.main(["view", str(demo[0].parent / "missing.rrd")]) == 2
+    assert cli.main(["demo", "--quick", "--rerun", str(demo[0].parent), "--quiet"]) == 2  # a folder: before work
+    assert "is a folder" in capsys.readouterr().err
+
+
+def test_core_does_not_import_rerun():
+    code = ("import sys, cm3d, cm3d.cli, cm3d.demo, cm3d.pipeline, cm3d.long_video, cm3d.outputs; "
+            "assert not [m for m in sys.modules if m.split('.')[0] in ('rerun', 'rerun_bindings')]")
+    subprocess.run([sys.executable, "-c", code], check=True)
