@@ -59,7 +59,8 @@ def blueprint():
                          rrb.TimeSeriesView(origin="plots", name="ATE so far, LM cost"),
                          rrb.TextLogView(origin="log", name="recall decisions")),
             column_shares=[3, 2]),
-        collapse_panels=True)
+        rrb.TimePanel(timeline="frame", play_state="paused"),
+        collapse_panels=False)
 
 
 def set_time(rec, frame: int, visit: int) -> None:

@@ -17,6 +17,11 @@ from cm3d.viz import log
 
 PRIOR, REFINED, TRUTH = (230, 120, 40), (40, 200, 90), (90, 140, 255)
 KEPT, REJECTED, LOOP = (60, 230, 60), (255, 50, 50), (255, 0, 255)
+#: cues recomputed on every 4th frame: every frame costs ~60 ms at 192x256 on 2 cores (a quarter of
+#: the run's time per frame), every 4th keeps ``--rerun`` within its 10 % (experiments/bench_rerun.py)
+CUE_EVERY = 4
+#: the static map drawn from every 8th pixel (static_map.ply keeps every 4th)
+MAP_STRIDE = 8
 
 
 @dataclasses.dataclass(frozen=True)
@@ -24,12 +29,13 @@ class FrameLayers:
     """Per frame, at the back end's resolution (h, w): the input image (S, h, w, 3) uint8, prior
     depth and confidence (S, h, w), the pipeline's dynamic mask, the cues (flow GMM, geometry,
     residual px with its Otsu threshold (S,)) and the keypoint matches uv (S, n, 2) kept (static) or
-    rejected (on a moving object)."""
+    rejected (on a moving object); ``cued`` (S,): the frames whose cues were recomputed."""
 
     image: np.ndarray
     depth: np.ndarray
     conf: np.ndarray
     dynamic: np.ndarray
+    cued: np.ndarray
     flow_mask: np.ndarray
     geo_mask: np.ndarray
     residual: np.ndarray
@@ -52,30 +58,42 @@ class SequenceFacts:
     agreement: float
 
 
-def frame_layers(inputs, outputs, num_frames: int, cfg) -> tuple[FrameLayers, float]:
-    """The cues of every real frame recomputed on the host (one jitted call per frame) from the
-    run's NumPy :class:`cm3d.pipeline.Inputs`; returns (layers, agreement with ``outputs.mask``)."""
+def frame_layers(inputs, outputs, num_frames: int, cfg, every: int = 1) -> tuple[FrameLayers, float]:
+    """The cues of every ``every``-th real frame recomputed on the host (one jitted call per frame)
+    from the run's NumPy :class:`cm3d.pipeline.Inputs` (the other frames' cue layers stay empty);
+    returns (layers, agreement of the recomputed frames with ``outputs.mask``)."""
     import jax
 
     from cm3d.motion import motion_cues_jit
 
     keys = ("flow_mask", "geo_mask", "robust_mask", "residual", "geo_threshold", "kp_dynamic", "kp_valid")
     got = {k: [] for k in keys}
-    for t in range(num_frames):
+    frames = np.arange(0, num_frames, every)
+    for t in frames:
         x = jax.tree.map(lambda a, t=t: a[t], inputs)
         c = motion_cues_jit(x.frame, x.partner, x.flow, x.matches, cfg.motion, flow_rev=x.flow_rev, second=x.second)
         for k in keys:
             got[k].append(getattr(c, k))
-    got = {k: np.asarray(jax.device_get(v)) for k, v in got.items()}
     S = num_frames
+
+    def full(k, fill):  # every frame's slot, the recomputed frames filled
+        v = np.asarray(jax.device_get(got[k]))
+        out = np.full((S,) + v.shape[1:], fill, v.dtype)
+        out[frames] = v
+        return out
+
     dynamic = np.asarray(outputs.mask[:S], bool)
     m = np.asarray(inputs.matches.valid[:S], bool)
+    cued = np.zeros(S, bool)
+    cued[frames] = True
+    kp_valid, kp_dyn = full("kp_valid", False), full("kp_dynamic", False)
     layers = FrameLayers(image=np.asarray(inputs.frame.image[:S]), depth=np.asarray(inputs.frame.depth[:S]),
-                         conf=np.asarray(inputs.frame.depth_conf[:S]), dynamic=dynamic,
-                         flow_mask=got["flow_mask"], geo_mask=got["geo_mask"], residual=got["residual"],
-                         threshold=got["geo_threshold"], kp_uv=np.asarray(inputs.matches.uv0[:S]),
-                         kp_kept=m & got["kp_valid"] & ~got["kp_dynamic"], kp_rejected=m & got["kp_dynamic"])
-    return layers, float(np.mean(got["robust_mask"] == dynamic))
+                         conf=np.asarray(inputs.frame.depth_conf[:S]), dynamic=dynamic, cued=cued,
+                         flow_mask=full("flow_mask", False), geo_mask=full("geo_mask", False),
+                         residual=full("residual", 0.0), threshold=full("geo_threshold", 0.0),
+                         kp_uv=np.asarray(inputs.matches.uv0[:S]),
+                         kp_kept=m & kp_valid & ~kp_dyn, kp_rejected=m & kp_dyn)
+    return layers, float(np.mean(full("robust_mask", False)[frames] == dynamic[frames]))
 
 
 def recalled_cloud(bank, window):
@@ -94,7 +112,7 @@ def recalled_cloud(bank, window):
     return np.asarray(pts, np.float32), np.asarray(cloud.colors)[ok]
 
 
-def sequence_facts(inputs, outputs, result, bank_before, cfg) -> SequenceFacts:
+def sequence_facts(inputs, outputs, result, bank_before, cfg, cue_every: int = 1) -> SequenceFacts:
     """:class:`SequenceFacts` of one sequence from what :func:`cm3d.pipeline.run` hands its
     ``observe`` callback (``inputs`` / ``outputs`` None: the back end did not run) and the bank the
     sequence started from."""
@@ -102,11 +120,25 @@ def sequence_facts(inputs, outputs, result, bank_before, cfg) -> SequenceFacts:
     if inputs is None or outputs is None:
         return SequenceFacts(None, [np.zeros((0, 3), np.float32)] * len(result.windows),
                              [None] * len(result.windows), 1.0)
-    layers, agreement = frame_layers(inputs, outputs, S, cfg)
+    layers, agreement = frame_layers(inputs, outputs, S, cfg, cue_every)
     ends = np.flatnonzero(np.asarray(outputs.window_end))
     pts, ok = np.asarray(outputs.window.points), np.asarray(outputs.window.point_valid, bool)
     landmarks = [pts[t][ok[t] & np.all(np.isfinite(pts[t]), -1)] for t in ends]
     return SequenceFacts(layers, landmarks, [recalled_cloud(bank_before, w) for w in result.windows], agreement)
+
+
+_ATE = []
+
+
+def _jitted_ate():
+    """:func:`cm3d.eval.metrics.ate` jitted once per process (one program per sequence length)."""
+    if not _ATE:
+        import jax
+
+        from cm3d.eval import metrics
+
+        _ATE.append(jax.jit(metrics.ate, static_argnames="align"))
+    return _ATE[0]
 
 
 def _centres(poses) -> np.ndarray:
@@ -141,8 +173,9 @@ class Recorder:
     """One ``.rrd`` recording of a run: :meth:`sequence` per visit (frames numbered on from the last
     visit's), :meth:`long_video` for stitched chunks, :meth:`close` to finish the file."""
 
-    def __init__(self, path, bank=None):
+    def __init__(self, path, bank=None, cue_every: int = CUE_EVERY):
         self.rec, self._paths = log.open_recording(path)
+        self.cue_every = cue_every
         self.bank = bank  # the bank the next sequence starts from
         self.frames = 0
         self.visits = 0
@@ -152,7 +185,7 @@ class Recorder:
     def observe(self, cfg, visit: int | None = None):
         """A callback for :func:`cm3d.pipeline.run`'s ``observe``: records each sequence as a visit."""
         def cb(i, inputs, outputs, result, bank_after):
-            self.sequence(result, sequence_facts(inputs, outputs, result, self.bank, cfg), cfg,
+            self.sequence(result, sequence_facts(inputs, outputs, result, self.bank, cfg, self.cue_every), cfg,
                           self.visits if visit is None else visit)
             self.bank = bank_after
         return cb
@@ -190,7 +223,9 @@ class Recorder:
         prior, refined = np.asarray(result.prior, np.float64), np.asarray(result.poses, np.float64)
         gt = None
         if seq.gt is not None:
-            gt = np.asarray(metrics.align_trajectory(np.asarray(seq.gt.cam_to_world, np.float64), refined), np.float64)
+            ate = _jitted_ate()
+            gt_own = np.asarray(seq.gt.cam_to_world, np.float64)
+            gt = np.asarray(metrics.align_trajectory(gt_own, refined), np.float64)
         ends = {w.frames[1]: i for i, w in enumerate(result.windows)}
         for t in range(S):
             log.set_time(rec, offset + t, visit)
@@ -203,6 +238,7 @@ class Recorder:
                 c = L.conf[t]
                 log.heat(rec, "frame/confidence", c, float(np.quantile(c, 0.99)) if c.size else 1.0)
                 log.mask(rec, "frame/dynamic", L.dynamic[t])
+            if L is not None and L.cued[t]:
                 log.mask(rec, "frame/cues/flow_gmm", L.flow_mask[t])
                 log.mask(rec, "frame/cues/geometry", L.geo_mask[t])
                 log.heat(rec, "frame/cues/residual", L.residual[t], 2.0 * max(float(L.threshold[t]), 1e-3))
@@ -212,17 +248,17 @@ class Recorder:
             log.strip(rec, "world/trajectory/refined", _centres(refined[: t + 1]), REFINED, 0.004 * unit)
             if gt is not None:
                 log.strip(rec, "world/trajectory/ground_truth", _centres(gt[: t + 1]), TRUTH, 0.004 * unit)
-                if t >= 2:
-                    g = np.asarray(seq.gt.cam_to_world[: t + 1], np.float64)
-                    log.scalar(rec, "plots/ate_so_far/prior", float(metrics.ate(prior[: t + 1], g)))
-                    log.scalar(rec, "plots/ate_so_far/refined", float(metrics.ate(refined[: t + 1], g)))
+                if t >= 2:  # frames 0..t of full-length arrays: one shape, no compile per frame
+                    so_far = np.arange(S) <= t
+                    log.scalar(rec, "plots/ate_so_far/prior", float(ate(prior, gt_own, valid=so_far)))
+                    log.scalar(rec, "plots/ate_so_far/refined", float(ate(refined, gt_own, valid=so_far)))
             if t in ends:
                 i = ends[t]
                 w = result.windows[i]
                 place = np.eye(4) if world_of_window is None else world_of_window(i)
                 sub = types.SimpleNamespace(depth=d[: t + 1], depth_conf=np.asarray(seq.depth_conf)[: t + 1],
                                             intrinsic=K[: t + 1], images=images[: t + 1])
-                pts, cols = outs.static_map(sub, refined[: t + 1], result.masks[: t + 1])
+                pts, cols = outs.static_map(sub, refined[: t + 1], result.masks[: t + 1], stride=MAP_STRIDE)
                 log.points3d(rec, "world/map/new", pts, cols, 0.006 * unit)
                 lms = facts.landmarks[i]
                 log.points3d(rec, "world/landmarks", sim3.apply(place, lms) if len(lms) else lms, (255, 220, 0),
@@ -241,7 +277,7 @@ class Recorder:
         """A callback for :func:`cm3d.long_video.stitch_with_memory`'s ``observe``: keeps each chunk's
         :class:`SequenceFacts` in ``store`` (logged by :meth:`long_video` after stitching)."""
         def cb(i, inputs, outputs, result, bank_after):
-            store.append(sequence_facts(inputs, outputs, result, self.bank, cfg))
+            store.append(sequence_facts(inputs, outputs, result, self.bank, cfg, self.cue_every))
             self.bank = bank_after
         return cb
 
