@@ -24,30 +24,8 @@ os.environ["CM3D_JAX_CACHE"] = os.environ["JAX_COMPILATION_CACHE_DIR"]
 # share a program between a test and an experiment smoke run (the flags are part of its key).
 # XLA's HLO passes are the same at every LLVM level and XLA's CPU backend compiles without
 # fast-math, so the numerics do not depend on it; the benchmarks under experiments/ never use it.
-#
-# Two more compile-time flags, measured on the largest program of the suite (the 48x64 pipeline with
-# memory, experiments/camera_pose.py --quick, XLA compile alone): 36.8 s at -O0, 28.1 s with XLA:CPU's
-# older elemental emitters instead of its MLIR fusion emitters, 26.2 s with LLVM's expensive passes
-# off as well; the figures it prints were the same to the last digit. Neither flag is a promise of
-# XLA's, so a jaxlib that no longer knows one (XLA aborts on an unknown flag) runs without both; the
-# probe runs once, in the process that starts the run (xdist workers and scripts inherit the result).
-_FAST_COMPILE = "--xla_cpu_use_fusion_emitters=false --xla_llvm_disable_expensive_passes=true"
-
-
-def _xla_accepts(flags: str) -> bool:
-    import subprocess
-    import sys
-
-    env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
-    probe = "import jax, jax.numpy as jnp; jnp.ones(2).sum().block_until_ready()"
-    return subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, timeout=120).returncode == 0
-
-
 if "--xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    flags = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
-    if _xla_accepts(f"{flags} {_FAST_COMPILE}"):
-        flags = f"{flags} {_FAST_COMPILE}"
-    os.environ["XLA_FLAGS"] = flags
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
 
 import jax  # noqa: E402  (after the variable: a jax imported earlier by a plugin gets it here)
 
