@@ -107,7 +107,7 @@ def pair(request, shared_data):
 def test_real_pairs_match_evo_and_readme(pair):
     gt_path, est_path, (n, ate_ref, ate_se3_ref, rpe_t_ref, rpe_r_ref), evo_out = pair
     ours = evaluate_trajectory_files(gt_path, est_path)
-    assert list(ours) == ["ate", "ate_se3", "rpe_trans", "rpe_rot", "pairs"]
+    assert list(ours) == ["ate", "ate_se3", "rpe_trans", "rpe_rot", "rot_rmse", "pairs", "extent", "ate_defined"]
     assert ours["pairs"] == evo_out["pairs"] == n
     for k in ("ate", "ate_se3", "rpe_trans", "rpe_rot"):
         assert isinstance(ours[k], float)
