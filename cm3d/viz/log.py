@@ -51,16 +51,22 @@ def blueprint():
     """The default viewer layout: the 3D world beside the camera image, the cues, plots and logs."""
     import rerun.blueprint as rrb
 
+    two_d = lambda name, *paths: rrb.Spatial2DView(origin="frame", name=name, contents=list(paths))  # noqa: E731
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Spatial3DView(origin="world", name="world (memory brighter)"),
             rrb.Vertical(rrb.Spatial2DView(origin="world/camera/image", name="camera + dynamic mask"),
-                         rrb.Spatial2DView(origin="frame", name="cues (back-end resolution)"),
-                         rrb.TimeSeriesView(origin="plots", name="ATE so far, LM cost"),
+                         rrb.Tabs(two_d("cues", "+ /frame/**", "- /frame/depth", "- /frame/confidence",
+                                        "- /frame/cues/residual"),
+                                  two_d("residual flow", "/frame/cues/residual"),
+                                  two_d("prior depth", "/frame/depth"), two_d("confidence", "/frame/confidence")),
+                         rrb.Horizontal(rrb.TimeSeriesView(origin="plots/ate_so_far", name="ATE so far"),
+                                        rrb.TimeSeriesView(origin="plots", name="LM cost, memory landmarks",
+                                                           contents=["/plots/lm_cost", "/plots/memory_landmarks"])),
                          rrb.TextLogView(origin="log", name="recall decisions")),
             column_shares=[3, 2]),
-        rrb.TimePanel(timeline="frame", play_state="paused"),
-        collapse_panels=False)
+        rrb.TimePanel(timeline="frame", play_state="following"),  # opens on the last frame
+        collapse_panels=True)
 
 
 def set_time(rec, frame: int, visit: int) -> None:
