@@ -394,7 +394,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"cm3d {args.command}: interrupted", file=sys.stderr)
         return 130
-    if args.command not in ("eval", "memory"):
+    if args.command not in ("eval", "memory", "view"):
         print(f"done in {time.perf_counter() - t0:.1f} s")
     return rc
 

@@ -43,8 +43,8 @@ def shared_data() -> Path:
 # The slowest modules first (each holds tests of 15-80 s: compiled pipelines, experiment smoke
 # runs), so that the xdist workers, which steal work from each other (``--dist worksteal``), end
 # together instead of one worker finishing a long test alone at the end of the run.
-SLOW_FIRST = ("test_sweep.py", "test_experiments.py", "test_cli.py", "test_pipeline.py", "test_align.py",
-              "test_lm.py", "test_memory.py")
+SLOW_FIRST = ("test_sweep.py", "test_experiments.py", "test_cli.py", "test_rerun.py", "test_pipeline.py",
+              "test_align.py", "test_reliability.py", "test_lm.py", "test_memory.py")
 
 
 def pytest_collection_modifyitems(config, items):

@@ -17,9 +17,10 @@ from cm3d.viz import log
 
 PRIOR, REFINED, TRUTH = (230, 120, 40), (40, 200, 90), (90, 140, 255)
 KEPT, REJECTED, LOOP = (60, 230, 60), (255, 50, 50), (255, 0, 255)
-#: cues recomputed on every 4th frame: every frame costs ~60 ms at 192x256 on 2 cores (a quarter of
-#: the run's time per frame), every 4th keeps ``--rerun`` within its 10 % (experiments/bench_rerun.py)
-CUE_EVERY = 4
+#: cues recomputed on every 8th frame: every frame costs ~60 ms at 192x256 on 2 cores (a quarter of
+#: the run's time per frame); every 4th measured +9.0 % on a quiet machine (recorder 2.47 s of a 20.8 s
+#: run), too close to the 10 % budget (experiments/bench_rerun.py)
+CUE_EVERY = 8
 #: the static map drawn from every 8th pixel (static_map.ply keeps every 4th)
 MAP_STRIDE = 8
 
