@@ -21,11 +21,9 @@ from cm3d.demo import run_demo  # noqa: E402
 VISITS, FRAMES = 8, 8
 
 
-@pytest.fixture(scope="module")
-def demo(tmp_path_factory):
-    rrd = tmp_path_factory.mktemp("rerun") / "demo.rrd"
-    rows = run_demo(scene=2, visits=VISITS, quick=True, out=None, rerun=str(rrd))
-    rows_by_entity = collections.defaultdict(list)  # entity -> [(frame, visit, {column: value})]
+def read_back(rrd):
+    """A recording as entity -> [(frame, visit, {column: value})], read with rerun's own reader."""
+    rows_by_entity = collections.defaultdict(list)
     for chunk in RrdReader(rrd).stream():
         b = chunk.to_record_batch()
         cols = {n: b.column(n).to_pylist() for n in b.schema.names}
@@ -33,7 +31,14 @@ def demo(tmp_path_factory):
             rows_by_entity[chunk.entity_path].append(
                 (cols.get("frame", [None] * chunk.num_rows)[r], cols.get("visit", [None] * chunk.num_rows)[r],
                  {n: v[r] for n, v in cols.items()}))
-    return rrd, rows, rows_by_entity
+    return rows_by_entity
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    rrd = tmp_path_factory.mktemp("rerun") / "demo.rrd"
+    rows = run_demo(scene=2, visits=VISITS, quick=True, out=None, rerun=str(rrd))
+    return rrd, rows, read_back(rrd)
 
 
 def test_recording_holds_every_stage(demo):
@@ -94,6 +99,33 @@ def test_view_without_a_display_says_how(demo, monkeypatch, capsys):
     assert cli.main(["view", str(demo[0].parent / "missing.rrd")]) == 2
     assert cli.main(["demo", "--quick", "--rerun", str(demo[0].parent), "--quiet"]) == 2  # a folder: before work
     assert "is a folder" in capsys.readouterr().err
+
+
+def test_a_chunked_video_is_one_timeline_with_its_chunks(tmp_path):
+    """``cm3d run CHUNKS.npz --rerun``: the stitched video's 8 frames on one timeline, each chunk's
+    placed prior as its own strip, the chunk boundary in the log (2 chunks of 5 frames sharing 2, the
+    shapes of test_cli's chunk test)."""
+    from cm3d import long_video as stitch
+    from cm3d.data import synthetic
+
+    wcfg = synthetic.WorldConfig(height=48, width=64, supersample=1)
+    images, gt = synthetic.render_ground_truth(synthetic.make_scene(0, wcfg), 0, 8, wcfg)
+    chunks = synthetic.make_chunk_priors(images, gt, 5, 2, "slight", seed=0, timestamps=np.arange(8) / wcfg.fps)
+    stitch.save_chunks(tmp_path / "all.npz", chunks)
+    rrd = tmp_path / "video.rrd"
+    assert cli.main(["run", str(tmp_path / "all.npz"), "--out", str(tmp_path / "out"), "--rerun", str(rrd),
+                     "--quiet", "--no-pictures"]) == 0
+    ents = read_back(rrd)
+    assert {f for f, _, _ in ents["/world/camera/image/dynamic"]} == set(range(8))
+    for k in (0, 1):
+        strips = [r["LineStrips3D:strips"] for _, _, r in ents[f"/world/chunks/{k}"] if r.get("LineStrips3D:strips")]
+        assert len(strips) == 1 and len(strips[0][0]) == 5, k  # the chunk's 5 placed prior centres
+    text = [t for _, _, r in ents["/log/chunks"] for t in r["TextLog:text"]]
+    assert any(t.startswith("chunk 0: frames 0-4") for t in text)
+    assert any(t.startswith("chunk 1: frames 3-7; boundary with chunk 0") for t in text), text
+    refined = [r["LineStrips3D:strips"][0] for _, _, r in ents["/world/trajectory/refined"]
+               if r.get("LineStrips3D:strips")]
+    assert [len(s) for s in refined] == list(range(1, 9))
 
 
 def test_core_does_not_import_rerun():
