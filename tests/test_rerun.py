@@ -128,6 +128,37 @@ def test_a_chunked_video_is_one_timeline_with_its_chunks(tmp_path):
     assert [len(s) for s in refined] == list(range(1, 9))
 
 
+def test_a_loop_closure_is_drawn_and_logged(tmp_path):
+    """The loop-closure layer of a long video: the stitched 2-chunk video above, recorded with one loop
+    closure added to its stitch result (chunk 1's first window recalling chunk 0's map, left out by
+    the pose graph): a segment between the two windows' mean camera centres and a WARN log line."""
+    import dataclasses
+
+    from cm3d import long_video as stitch
+    from cm3d.data import synthetic
+    from cm3d.viz.record import Recorder
+
+    wcfg = synthetic.WorldConfig(height=48, width=64, supersample=1)
+    images, gt = synthetic.render_ground_truth(synthetic.make_scene(0, wcfg), 0, 8, wcfg)
+    chunks = synthetic.make_chunk_priors(images, gt, 5, 2, "slight", seed=0, timestamps=np.arange(8) / wcfg.fps)
+    cfg = stitch.memory_config_for_chunks(48, 64, [c.num_frames for c in chunks])
+    rec, facts = Recorder(tmp_path / "loop.rrd"), []
+    st = stitch.stitch_with_memory(chunks, pipeline_config=cfg, observe=rec.chunk_observer(cfg, facts))
+    lc = stitch.LoopClosure(chunk=1, other=0, frames=(0, 3), transform=np.eye(4), inliers=50, rmse=0.01,
+                            other_frames=(0, 3))
+    st = dataclasses.replace(st, loops=(lc,), refinement={**st.refinement, "loop_kept": [False]})
+    whole = stitch.memory_sequence_result(st, chunks)
+    rec.long_video(st, whole, facts, cfg)
+    ents = read_back(rec.close())
+    segs = [r["LineStrips3D:strips"] for _, _, r in ents["/world/loops/0"] if r.get("LineStrips3D:strips")]
+    centres = np.asarray(whole.poses)[:, :3, 3]
+    want = np.stack([centres[3:7].mean(0), centres[0:4].mean(0)])  # chunk 1 starts at global frame 3
+    assert len(segs) == 1 and np.allclose(np.asarray(segs[0][0], np.float64), want, atol=1e-5)
+    text = [(t, r.get("TextLog:level")) for _, _, r in ents["/log/chunks"] for t in r["TextLog:text"]]
+    assert any(t.startswith("loop closure: chunk 1 (frames 3-6) recalled the map of chunk 0 (frames 0-3)")
+               and "left out" in t for t, _ in text), text
+
+
 def test_core_does_not_import_rerun():
     code = ("import sys, cm3d, cm3d.cli, cm3d.demo, cm3d.pipeline, cm3d.long_video, cm3d.outputs; "
             "assert not [m for m in sys.modules if m.split('.')[0] in ('rerun', 'rerun_bindings')]")
