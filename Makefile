@@ -21,6 +21,10 @@ demo: setup
 	$(VENV)/bin/cm3d demo
 
 test: setup
+	@# A test worker JIT-links hundreds of compiled programs, one memory mapping per code section; at the
+	@# kernel's default limit (65530) LLVM aborts the worker mid-run (a core showed 65532 mappings).
+	@m=$$(cat /proc/sys/vm/max_map_count 2>/dev/null || echo 262144); [ $$m -ge 262144 ] || sysctl -qw vm.max_map_count=262144 2>/dev/null \
+	  || echo "warning: vm.max_map_count is $$m and could not be raised; a long test worker may abort"
 	$(VENV)/bin/python -m pytest -n auto --dist worksteal
 
 clean:
