@@ -23,7 +23,7 @@ H, W, F = 96, 128, 100.0
 K = np.array([[F, 0, W / 2], [0, F, H / 2], [0, 0, 1]], np.float32)
 TX = 0.08  # camera 1 is 8 cm to the right: wall flow -2 px, strip flow -8 px
 STRIP = (40, 70)  # columns of the near strip in frame 0
-CFG = motion.MotionConfig()
+CFG = motion.MotionConfig(appearance=False)  # the images here are blank: the geometry alone is tested
 OLD = dataclasses.replace(CFG, occlusion=False, edge_radius_px=0)
 
 

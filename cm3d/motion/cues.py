@@ -5,8 +5,9 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from cm3d.motion.appearance import confirmed_regions, static_rejected
 from cm3d.motion.frames import FramePrior, MotionConfig, MotionCues, SecondPair
-from cm3d.motion.geometry_cue import baseline_motion_cue, geometry_motion_cue
+from cm3d.motion.geometry_cue import baseline_motion_cue, ego_flow_rel, geometry_motion_cue
 from cm3d.motion.keypoint_cue import (
     candidate_regions, dynamic_keypoints, keypoint_displacements, robust_motion_cue, static_reference
 )
@@ -43,13 +44,19 @@ def motion_cues(prior_t: FramePrior, prior_t2: FramePrior, flow, matches,
     flow_mask, _ = flow_motion_cue(flow, cfg)
     geo = geometry_motion_cue(prior_t, prior_t2, flow, cfg, flow_rev)
     geo_mask, valid = geo.mask, geo.valid
+    if cfg.appearance:
+        support = _rejects_static(prior_t, prior_t2, flow, geo, cfg)
     if second is not None and cfg.two_pairs:
-        g2 = geometry_motion_cue(prior_t, second.partner, jnp.asarray(second.flow, jnp.float32), cfg,
-                                 jnp.asarray(second.flow_rev, jnp.float32))
+        flow2 = jnp.asarray(second.flow, jnp.float32)
+        g2 = geometry_motion_cue(prior_t, second.partner, flow2, cfg, jnp.asarray(second.flow_rev, jnp.float32))
         ok2 = jnp.asarray(second.valid, bool)
         geo_mask, valid = combine_pairs(geo_mask, valid, g2.mask & ok2, g2.valid & ok2)
+        if cfg.appearance:
+            support |= _rejects_static(prior_t, second.partner, flow2, g2, cfg) & ok2
     residual, thr, rel = geo.residual, geo.threshold, geo.rel_pose
     candidates, labels = candidate_regions(flow_mask, geo_mask, valid, cfg)
+    if cfg.appearance:
+        labels = confirmed_regions(labels, support, cfg.appearance_min_fraction)
     disp, ray, kp_ok = keypoint_displacements(prior_t, prior_t2, matches, rel, cfg)
     kp_dyn = dynamic_keypoints(disp, ray, kp_ok, cfg, static_reference(labels, matches, kp_ok, cfg))
     robust, kp_dyn_inside = robust_motion_cue(labels, matches, kp_dyn, kp_ok, cfg)
@@ -57,6 +64,13 @@ def motion_cues(prior_t: FramePrior, prior_t2: FramePrior, flow, matches,
     return MotionCues(flow_mask=flow_mask, geo_mask=geo_mask, candidates=candidates, robust_mask=robust,
                       baseline_mask=baseline, residual=residual, valid=valid, geo_threshold=thr,
                       rel_pose=rel, kp_dynamic=kp_dyn_inside, kp_valid=kp_ok, occluded=geo.occluded)
+
+
+def _rejects_static(prior_t: FramePrior, prior_t2: FramePrior, flow, geo, cfg: MotionConfig):
+    """Pixels whose images reject the static hypothesis of the pair (:mod:`cm3d.motion.appearance`)."""
+    ego, ok = ego_flow_rel(prior_t.depth, prior_t.intrinsic, prior_t2.intrinsic, geo.rel_pose)
+    return static_rejected(prior_t.image, prior_t2.image, flow, ego, geo.valid & ok & ~geo.mask,
+                           cfg.appearance_radius, cfg.appearance_k)
 
 
 def sequence_motion_cues(priors: FramePrior, flows, matches, cfg: MotionConfig = MotionConfig()) -> MotionCues:

@@ -100,6 +100,14 @@ class MotionConfig:
     zbuffer_rel_tol: float = 0.05  # hidden: lands behind the partner's depth by more than this fraction
     edge_radius_px: int = 2  # the residual is to the ego flows of every depth within this radius (0: own depth)
     two_pairs: bool = True  # with a second partner (t-1), dynamic = moving in every pair that judges it
+    # appearance check (cm3d.motion.appearance): a candidate region is kept only where the images
+    # reject the static hypothesis (ego-warp patch dissimilarity above the flow warp's by k robust
+    # sigmas of that excess on the presumed-static pixels) on at least min_fraction of its pixels,
+    # in either pair
+    appearance: bool = True
+    appearance_radius: int = 2
+    appearance_k: float = 3.0
+    appearance_min_fraction: float = 0.3
     # candidate regions
     candidate_source: str = "geo"  # "geo", "union" or "intersection" of the flow and geo masks
     open_radius: int = 1
