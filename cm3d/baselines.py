@@ -6,6 +6,7 @@
 * :func:`gtsam_graph` / :func:`gtsam_solve`: the same factor graph in GTSAM (projection factors
   with a Huber robust model, ``PriorFactorPose3``, ``BetweenFactorPose3``) and its
   ``LevenbergMarquardtOptimizer``: the reference the LM solver is tested and benchmarked against.
+* :func:`monst3r_masks`: the MonST3R-style fixed-threshold dynamic mask of a sequence.
 
 Poses are cam_to_world 4x4 (see :mod:`cm3d.ops.se3`). GTSAM's tangent order is (rotation,
 translation), jaxlie's (translation, rotation): sigmas are permuted here, nowhere else.
@@ -14,6 +15,7 @@ translation), jaxlie's (translation, rotation): sigmas are permuted here, nowher
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 
 import numpy as np
@@ -212,3 +214,42 @@ def gtsam_solve(graph, init, max_iterations: int = 100, rel_tol: float = 1e-5, a
                 break
         out = dataclasses.replace(out, history=np.array(hist))
     return out
+
+
+# ----------------------------------------------------------------------------------------------
+# MonST3R-style dynamic masks
+
+
+def monst3r_masks(inputs, num_frames: int, shape, cfg) -> np.ndarray:
+    """The MonST3R-style baseline's dynamic masks (S, H, W) bool of one sequence, at input resolution.
+
+    ``|flow − ego flow| > cfg.motion.baseline_threshold_px`` (a fixed threshold, no occlusion or
+    appearance reasoning, no keypoint verification) under the same flow-refined relative pose as
+    cm3d's cue, on the pipeline's host :class:`~cm3d.pipeline.prepare.Inputs` (what
+    ``pipeline.run(observe=...)`` hands over) at its ``1 / stride``, upsampled like cm3d's masks.
+    """
+    import jax
+
+    sub = jax.tree.map(lambda a: np.asarray(a)[:num_frames], inputs)
+    m = np.asarray(_monst3r_batch(sub.frame, sub.partner, sub.flow, sub.flow_rev, cfg.motion), bool)
+    s = cfg.stride
+    H, W = shape
+    return np.repeat(np.repeat(m, s, axis=1), s, axis=2)[:, :H, :W]
+
+
+def _monst3r_one(prior_t, prior_t2, flow, flow_rev, mcfg):
+    from cm3d.motion import baseline_motion_cue, geometry_motion_cue
+
+    rel = geometry_motion_cue(prior_t, prior_t2, flow, mcfg, flow_rev).rel_pose
+    return baseline_motion_cue(prior_t, prior_t2, flow, rel, mcfg)
+
+
+def _monst3r_batch(frame, partner, flow, flow_rev, mcfg):
+    return _monst3r_program()(frame, partner, flow, flow_rev, mcfg)
+
+
+@functools.cache
+def _monst3r_program():
+    import jax
+
+    return jax.jit(jax.vmap(_monst3r_one, in_axes=(0, 0, 0, 0, None)), static_argnums=4)

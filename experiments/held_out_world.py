@@ -12,13 +12,14 @@ hall 0 visit 0, hall 0 visit 1, hall 1 visit 0, ...), with VGGT-like priors at `
 (:func:`cm3d.data.priors.make_priors`).
 
 Per visit: mask IoU / precision / recall (pooled over the visit's pixels) against the ground-truth
-dynamic mask, the share of false-positive pixels within 2 px of a depth discontinuity, ATE of the
-prior and of cm3d (Sim(3)-aligned). Memory: a revisit (visit 1) is recalled when one of its windows
+dynamic mask, the share of false-positive pixels within 2 px of a depth discontinuity, the IoU of
+the MonST3R-style fixed-threshold baseline on the same inputs (:func:`cm3d.baselines.monst3r_masks`),
+ATE of the prior and of cm3d (Sim(3)-aligned). Memory: a revisit (visit 1) is recalled when one of its windows
 is accepted with the map its hall's visit 0 stored; any window accepted with another hall's map is
 a false recall.
 
-JSON keys: mask_iou, mask_precision, mask_recall, fp_edge_share, ate_prior, ate_cm3d (means over
-visits), revisits_recalled, revisits_total, false_recalls, visits, seconds.
+JSON keys: mask_iou, mask_precision, mask_recall, fp_edge_share, mask_iou_monst3r, ate_prior,
+ate_cm3d (means over visits), revisits_recalled, revisits_total, false_recalls, visits, seconds.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from cm3d import outputs, pipeline  # noqa: E402
+from cm3d import baselines, outputs, pipeline  # noqa: E402
 from cm3d.data import held_out_world, priors  # noqa: E402
 from cm3d.eval.metrics import mask_metrics  # noqa: E402
 from cm3d.outputs import write_json  # noqa: E402
@@ -69,18 +70,22 @@ def main() -> None:
     seqs = [held_out_world.generate(s, v, frames, args.level, wcfg) for s in range(scenes) for v in (0, 1)]
     render_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    _, results = pipeline.run(seqs, cfg)
+    kept = {}
+    _, results = pipeline.run(seqs, cfg, observe=lambda i, inputs, *_: kept.__setitem__(i, inputs))
     run_s = time.perf_counter() - t0
 
     owner, rows = {}, []
     recalled, false_recalls = 0, 0
     head = (f"{'hall':>4s} {'visit':>5s} {'path':>8s} {'dyn %':>6s} {'IoU':>6s} {'prec':>6s} {'recall':>6s} "
-            f"{'FP@edge':>7s} {'ATE prior':>9s} {'ATE cm3d':>9s}  memory")
+            f"{'FP@edge':>7s} {'MonST3R':>7s} {'ATE prior':>9s} {'ATE cm3d':>9s}  memory")
     print("\n" + head + "\n" + "-" * len(head))
-    for seq, res in zip(seqs, results):
+    for i, (seq, res) in enumerate(zip(seqs, results)):
         s, v = seq.meta["scene"], seq.meta["visit"]
         gt = seq.gt.dynamic_mask
         mm = {k: float(x) for k, x in mask_metrics(res.masks, gt).items()}
+        base = (np.zeros_like(res.masks) if kept.get(i) is None
+                else baselines.monst3r_masks(kept[i], seq.num_frames, gt.shape[1:], cfg))
+        base_iou = float(mask_metrics(base, gt)["iou"])
         fp = res.masks & ~gt
         fp_edge = float((fp & depth_edges(seq.gt.depth)).sum() / max(fp.sum(), 1))
         m = outputs.sequence_metrics(res)
@@ -95,18 +100,21 @@ def main() -> None:
         false_recalls += bool(wrong)
         mem = ("recalled" if right else ("FALSE recall" if wrong else "no recall")) if (v == 1 or wrong) else "stored"
         row = {"iou": mm["iou"], "precision": mm["precision"], "recall": mm["recall"], "fp_edge": fp_edge,
+               "iou_monst3r": base_iou,
                "ate_prior": m["prior"]["ate"], "ate_cm3d": m["refined"]["ate"]}
         rows.append(row)
         print(f"{s:4d} {v:5d} {seq.meta['path']:>8s} {100 * gt.mean():6.2f} {row['iou']:6.3f} {row['precision']:6.3f} "
-              f"{row['recall']:6.3f} {row['fp_edge']:7.2f} {row['ate_prior']:9.4f} {row['ate_cm3d']:9.4f}  {mem}")
+              f"{row['recall']:6.3f} {row['fp_edge']:7.2f} {base_iou:7.3f} {row['ate_prior']:9.4f} "
+              f"{row['ate_cm3d']:9.4f}  {mem}")
     mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
     print("-" * len(head))
     print(f"{'mean':>10s} {'':>8s} {'':>6s} {mean['iou']:6.3f} {mean['precision']:6.3f} {mean['recall']:6.3f} "
-          f"{mean['fp_edge']:7.2f} {mean['ate_prior']:9.4f} {mean['ate_cm3d']:9.4f}")
+          f"{mean['fp_edge']:7.2f} {mean['iou_monst3r']:7.3f} {mean['ate_prior']:9.4f} {mean['ate_cm3d']:9.4f}")
     print(f"\nrevisits recalled {recalled}/{scenes}, false recalls {false_recalls}; render {render_s:.0f} s, "
           f"pipeline {run_s:.0f} s (compilation included), wall {time.perf_counter() - t_start:.0f} s")
     figures = {"mask_iou": mean["iou"], "mask_precision": mean["precision"], "mask_recall": mean["recall"],
-               "fp_edge_share": mean["fp_edge"], "ate_prior": mean["ate_prior"], "ate_cm3d": mean["ate_cm3d"],
+               "fp_edge_share": mean["fp_edge"], "mask_iou_monst3r": mean["iou_monst3r"],
+               "ate_prior": mean["ate_prior"], "ate_cm3d": mean["ate_cm3d"],
                "revisits_recalled": recalled, "revisits_total": scenes, "false_recalls": false_recalls,
                "visits": len(rows), "frames_per_visit": frames, "seconds": time.perf_counter() - t_start}
     if args.json:

@@ -23,7 +23,9 @@ Per segment (the pipeline alone on it, a fresh memory bank), against the ground 
   poses). The map goes to the world with its *known* scale (``prior_scale``) and a rotation fitted
   to all camera orientations (a centres-only Umeyama fit on a 30-frame path leaves ~10° free),
   then the mean camera-centre offset;
-* the fraction of pixels called dynamic (the kitchen is static: every one is a false positive);
+* the fraction of pixels called dynamic (the kitchen is static: every one is a false positive), by
+  cm3d and by the MonST3R-style fixed-threshold baseline on the same inputs
+  (:func:`cm3d.baselines.monst3r_masks`);
 * wall time of the pipeline on the segment (flow, SIFT and back end; compilation excluded).
 
 Memory: for each pair (A, B) of ``REVISITS`` (views of the same place, from the folder's README)
@@ -35,7 +37,8 @@ translation of B's first camera after undoing A's known scale (m), scale error (
 the fraction of B's ground-truth points within 5 cm of A's.
 
 JSON keys: ate_prior, ate_cm3d, rpe_trans_prior, rpe_trans_cm3d, map_acc_median_prior,
-map_acc_median_cm3d, map_comp_median_prior, map_comp_median_cm3d, false_dynamic_frac (means over
+map_acc_median_cm3d, map_comp_median_prior, map_comp_median_cm3d, false_dynamic_frac,
+false_dynamic_frac_monst3r (means over
 segments), revisits_recalled, revisits_total, false_recalls, distinct_total, reloc_rot_deg_median,
 reloc_trans_m_median, reloc_scale_err_pct_median (null when nothing was recalled), segments,
 seconds_per_segment; one ``overlap_A_B`` per pair.
@@ -53,7 +56,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from cm3d import outputs, pipeline  # noqa: E402
+from cm3d import baselines, outputs, pipeline  # noqa: E402
 from cm3d.data import priors, sevenscenes  # noqa: E402
 from cm3d.eval import metrics  # noqa: E402
 from cm3d.outputs import write_json  # noqa: E402
@@ -152,10 +155,17 @@ def reloc_error(est: np.ndarray, true: np.ndarray, scale_a: float) -> dict:
             "scale_err_pct": float(100 * (se / st - 1))}
 
 
-def run_segment(seq, cfg, bank=None):
+def run_segment(seq, cfg, bank=None, baseline: bool = False):
+    """(bank, result, seconds, MonST3R-style baseline masks (S, H, W) of the same inputs, or None)."""
     t0 = time.perf_counter()
-    bank, (res,) = pipeline.run([seq], cfg, bank)
-    return bank, res, time.perf_counter() - t0
+    kept = {}
+    bank, (res,) = pipeline.run([seq], cfg, bank, observe=lambda i, inputs, *_: kept.setdefault("inputs", inputs))
+    secs = time.perf_counter() - t0
+    base = None
+    if baseline:
+        base = (np.zeros(res.masks.shape, bool) if kept.get("inputs") is None
+                else baselines.monst3r_masks(kept["inputs"], seq.num_frames, res.masks.shape[1:], cfg))
+    return bank, res, secs, base
 
 
 def main() -> None:
@@ -196,13 +206,14 @@ def main() -> None:
     clouds = {s: gt_cloud(q) for s, q in seqs.items()}
     rows, banks, results = [], {}, {}
     head = (f"{'segment':>9s} {'ATE prior':>9s} {'ATE cm3d':>9s} {'RPE prior':>9s} {'RPE cm3d':>9s} "
-            f"{'acc prior':>9s} {'acc cm3d':>9s} {'comp pr':>8s} {'comp cm3d':>9s} {'dynamic':>8s} {'s':>6s}")
+            f"{'acc prior':>9s} {'acc cm3d':>9s} {'comp pr':>8s} {'comp cm3d':>9s} {'dynamic':>8s} {'MonST3R':>8s} "
+            f"{'s':>6s}")
     print("\nper segment (ATE / RPE trans in m, Sim(3)-aligned; map accuracy / completion: medians, m)\n")
     print(head)
     print("-" * len(head))
     for s in sorted(seqs):
         seq = seqs[s]
-        bank, res, secs = run_segment(seq, cfg)
+        bank, res, secs, base = run_segment(seq, cfg, baseline=s in starts)
         banks[s], results[s] = bank, res
         if s not in starts:
             continue
@@ -213,17 +224,18 @@ def main() -> None:
                "rpe_prior": m["prior"]["rpe_trans"], "rpe_cm3d": m["refined"]["rpe_trans"],
                "rpe_rot_prior": m["prior"]["rpe_rot"], "rpe_rot_cm3d": m["refined"]["rpe_rot"],
                "acc_prior": mp["acc"], "acc_cm3d": mc["acc"], "comp_prior": mp["comp"], "comp_cm3d": mc["comp"],
-               "dynamic": float(res.masks.mean()), "seconds": secs}
+               "dynamic": float(res.masks.mean()), "dynamic_monst3r": float(base.mean()), "seconds": secs}
         rows.append(row)
         n1 = seq.meta["frames"][-1]
         print(f"{s:4d}-{n1:<4d} {row['ate_prior']:9.4f} {row['ate_cm3d']:9.4f} {row['rpe_prior']:9.4f} "
               f"{row['rpe_cm3d']:9.4f} {row['acc_prior']:9.4f} {row['acc_cm3d']:9.4f} {row['comp_prior']:8.4f} "
-              f"{row['comp_cm3d']:9.4f} {100 * row['dynamic']:7.2f}% {secs:6.1f}")
+              f"{row['comp_cm3d']:9.4f} {100 * row['dynamic']:7.2f}% {100 * row['dynamic_monst3r']:7.2f}% {secs:6.1f}")
     mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if k != "segment"}
     print("-" * len(head))
     print(f"{'mean':>9s} {mean['ate_prior']:9.4f} {mean['ate_cm3d']:9.4f} {mean['rpe_prior']:9.4f} "
           f"{mean['rpe_cm3d']:9.4f} {mean['acc_prior']:9.4f} {mean['acc_cm3d']:9.4f} {mean['comp_prior']:8.4f} "
-          f"{mean['comp_cm3d']:9.4f} {100 * mean['dynamic']:7.2f}% {mean['seconds']:6.1f}")
+          f"{mean['comp_cm3d']:9.4f} {100 * mean['dynamic']:7.2f}% {100 * mean['dynamic_monst3r']:7.2f}% "
+          f"{mean['seconds']:6.1f}")
     print(f"ATE {100 * (mean['ate_cm3d'] / mean['ate_prior'] - 1):+.1f} %, RPE rot {mean['rpe_rot_prior']:.3f}° -> "
           f"{mean['rpe_rot_cm3d']:.3f}°")
 
@@ -232,7 +244,8 @@ def main() -> None:
                "rpe_rot_prior": mean["rpe_rot_prior"], "rpe_rot_cm3d": mean["rpe_rot_cm3d"],
                "map_acc_median_prior": mean["acc_prior"], "map_acc_median_cm3d": mean["acc_cm3d"],
                "map_comp_median_prior": mean["comp_prior"], "map_comp_median_cm3d": mean["comp_cm3d"],
-               "false_dynamic_frac": mean["dynamic"], "segments": len(rows), "frames_per_segment": frames,
+               "false_dynamic_frac": mean["dynamic"], "false_dynamic_frac_monst3r": mean["dynamic_monst3r"],
+               "segments": len(rows), "frames_per_segment": frames,
                "seconds_per_segment": mean["seconds"]}
 
     if len(clouds) > 2:
@@ -252,7 +265,7 @@ def main() -> None:
             ov = overlap(clouds[a], clouds[b])
             figures[f"overlap_{a}_{b}"] = ov
             maps_a = {w.map_id for w in results[a].windows if w.created_map}
-            _, res_b, _ = run_segment(seqs[b], cfg, banks[a])
+            _, res_b, *_ = run_segment(seqs[b], cfg, banks[a])
             acc = [w for w in res_b.windows if w.accepted and w.recalled_map in maps_a]
             best = max(res_b.windows, key=lambda w: max(w.keypoint_inliers or [0]))
             top = "A" if best.candidates and best.candidates[0] in maps_a else "-"
