@@ -54,16 +54,21 @@ def _gray(img):
     return cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
 
 
-def match_keypoints(img0: np.ndarray, img1: np.ndarray, cfg: KeypointConfig = KeypointConfig(),
-                    mask0: np.ndarray | None = None) -> Matches:
-    """Ratio-test matches from ``img0`` to ``img1``, best first, padded to ``cfg.max_matches``; ``mask0``
-    (H, W) bool optionally restricts detection in ``img0``."""
+def detect(image: np.ndarray, cfg: KeypointConfig = KeypointConfig(), mask: np.ndarray | None = None):
+    """OpenCV keypoints and raw descriptors of ``image`` with ``cfg``'s detector (``mask`` (H, W) bool
+    optionally restricts detection): ``(keypoints, descriptors or None)``. One detection serves
+    :func:`match_detections` (both as the first and the second image) and :func:`features_from`."""
+    det, _ = _detector(cfg)
+    m8 = None if mask is None else np.asarray(mask, np.uint8) * 255
+    return det.detectAndCompute(_gray(image), m8)
+
+
+def match_detections(det0, det1, cfg: KeypointConfig = KeypointConfig()) -> Matches:
+    """Ratio-test matches between two :func:`detect` results, best first, padded to ``cfg.max_matches``."""
     import cv2
 
-    det, norm = _detector(cfg)
-    m8 = None if mask0 is None else np.asarray(mask0, np.uint8) * 255
-    k0, d0 = det.detectAndCompute(_gray(img0), m8)
-    k1, d1 = det.detectAndCompute(_gray(img1), None)
+    (k0, d0), (k1, d1) = det0, det1
+    norm = cv2.NORM_L2 if cfg.detector == "sift" else cv2.NORM_HAMMING
     N = cfg.max_matches
     uv0, uv1, valid = np.zeros((N, 2), np.float32), np.zeros((N, 2), np.float32), np.zeros(N, bool)
     if d0 is None or d1 is None or len(k0) == 0 or len(k1) < 2:
@@ -78,6 +83,13 @@ def match_keypoints(img0: np.ndarray, img1: np.ndarray, cfg: KeypointConfig = Ke
         uv1[:n] = [k1[m.trainIdx].pt for m in good]
         valid[:n] = True
     return Matches(uv0, uv1, valid)
+
+
+def match_keypoints(img0: np.ndarray, img1: np.ndarray, cfg: KeypointConfig = KeypointConfig(),
+                    mask0: np.ndarray | None = None) -> Matches:
+    """Ratio-test matches from ``img0`` to ``img1``, best first, padded to ``cfg.max_matches``; ``mask0``
+    (H, W) bool optionally restricts detection in ``img0``."""
+    return match_detections(detect(img0, cfg, mask0), detect(img1, cfg), cfg)
 
 
 def sequence_matches(images: np.ndarray, cfg: KeypointConfig = KeypointConfig()) -> Matches:
@@ -119,7 +131,14 @@ def detect_features(image: np.ndarray, mask: np.ndarray | None = None, capacity:
     else:
         det, _ = _detector(cfg)
     m8 = None if mask is None else np.asarray(mask, np.uint8) * 255
-    kps, desc = det.detectAndCompute(img, m8)
+    return features_from(det.detectAndCompute(img, m8), capacity, cfg)
+
+
+def features_from(detection, capacity: int = 256, cfg: KeypointConfig = KeypointConfig()) -> Features:
+    """:class:`Features` of a :func:`detect` result (see :func:`detect_features`)."""
+    if capacity < 1:
+        raise ValueError(f"capacity: must be >= 1, got {capacity}")
+    kps, desc = detection
     D = DESCRIPTOR_DIM[cfg.detector]
     uv, out, valid = np.zeros((capacity, 2), np.float32), np.zeros((capacity, D), np.float32), np.zeros(capacity, bool)
     if desc is None or len(kps) == 0:

@@ -66,37 +66,7 @@ def padded_length(num_frames: int, cfg: PipelineConfig) -> int:
     return max(n, -(-num_frames // n) * n)
 
 
-def _front_end(images: np.ndarray, partner: np.ndarray, cfg: PipelineConfig, flow=None, progress=None):
-    """OpenCV flow (S, H, W, 2) of every frame to its partner and back, and keypoint matches."""
-    from cm3d.ops import flow as oflow
-    from cm3d.ops import keypoints as okp
-
-    S, H, W = images.shape[:3]
-    flows = np.zeros((S, H, W, 2), np.float32)
-    back = np.zeros((S, H, W, 2), np.float32)
-    uv0 = np.zeros((S, cfg.keypoints.max_matches, 2), np.float32)
-    uv1 = np.zeros_like(uv0)
-    mvalid = np.zeros((S, cfg.keypoints.max_matches), bool)
-    for t in range(S):
-        p = partner[t]
-        if p == t + 1:  # the last frame's pair (S-1, S-2) is the pair (S-2, S-1) reversed
-            flows[t] = flow[t] if flow is not None else oflow.compute_flow(images[t], images[p], cfg.flow)
-            back[t] = oflow.compute_flow(images[p], images[t], cfg.flow)
-        else:
-            flows[t], back[t] = back[p], flows[p]
-        m = okp.match_keypoints(images[t], images[p], cfg.keypoints)
-        uv0[t], uv1[t], mvalid[t] = m.uv0, m.uv1, m.valid
-        if progress is not None:
-            progress(t + 1, S)
-    return flows, back, Matches(uv0, uv1, mvalid)
-
-
-def prepare(sequence, cfg: PipelineConfig = PipelineConfig(), flow=None, progress=None) -> Inputs:
-    """Numpy :class:`Inputs` of a :class:`cm3d.data.Sequence`: flow and keypoint matches with each
-    frame's partner, keypoint features, 1/stride, padding to :func:`padded_length`. ``flow``: optional
-    precomputed forward flow (S-1, H, W, 2); ``progress``: optional ``(done, total)`` per frame."""
-    from cm3d.ops import keypoints as okp
-
+def _check_sequence(sequence, cfg: PipelineConfig) -> None:
     S, H, W = sequence.depth.shape
     if S < 2:
         raise ValueError(f"sequence: needs at least 2 frames, got {S}")
@@ -104,28 +74,94 @@ def prepare(sequence, cfg: PipelineConfig = PipelineConfig(), flow=None, progres
     if H // s < 2 * cfg.track.cell or W // s < 2 * cfg.track.cell:
         raise ValueError(f"sequence: images of {H}x{W} are too small for landmark cells of "
                          f"{cfg.track.cell * s} px")
+
+
+def prepare_chunks(sequence, cfg: PipelineConfig = PipelineConfig(), flow=None, progress=None,
+                   size: int | None = None):
+    """:func:`prepare` in pieces: yields ``(first frame, Inputs of size frames)`` for frames
+    ``0, size, 2 size, ...`` of the padded sequence (``size``: default ``keyframe_interval``, which
+    divides :func:`padded_length`), so that the caller can run one piece while the next is prepared.
+    Each frame's OpenCV work is done once: its flow pair with its partner (t+1; the last frame reuses
+    the pair before it, reversed) and one keypoint detection, shared by the matches of the pairs it
+    is in and by its memory features. Concatenated, the pieces are :func:`prepare`'s arrays."""
+    from cm3d.ops import flow as oflow
+    from cm3d.ops import keypoints as okp
+
+    _check_sequence(sequence, cfg)
+    S = sequence.depth.shape[0]
+    s = cfg.stride
+    size = cfg.keyframe_interval if size is None else int(size)
+    L = padded_length(S, cfg)
+    if size < 1 or L % size:
+        raise ValueError(f"size: must divide the padded length {L}, got {size}")
     images = np.asarray(sequence.images)
     partner = np.concatenate([np.arange(1, S), [S - 2]])
-    flows, back, m = _front_end(images, partner, cfg, flow, progress)
-    feats = okp.detect_sequence(images, None, cfg.feature_capacity, cfg.keypoints)
-
     K = scale_intrinsics(sequence.intrinsic, s).astype(np.float32)
     img_s = _shrink(images, s)
     depth = _shrink(np.asarray(sequence.depth, np.float32), s)
     conf = _shrink(np.asarray(sequence.depth_conf, np.float32), s)
     c2w = np.asarray(sequence.cam_to_world, np.float32)
     frame = FramePrior(image=img_s, depth=depth, depth_conf=conf, intrinsic=K, cam_to_world=c2w)
-    part = FramePrior(image=img_s[partner], depth=depth[partner], depth_conf=conf[partner],
-                      intrinsic=K[partner], cam_to_world=c2w[partner])
-    features = Features(np.asarray(feats.uv / s, np.float32), np.asarray(feats.desc, np.float32), feats.valid)
-    flow_s, back_s = _shrink(flows, s) / s, _shrink(back, s) / s
-    prev = np.maximum(np.arange(S) - 1, 0)
-    second = SecondPair(partner=jax.tree.map(lambda a: a[prev], frame), flow=back_s[prev], flow_rev=flow_s[prev],
-                        valid=(np.arange(S) >= 1) & (np.arange(S) < S - 1))
-    inputs = Inputs(frame=frame, partner=part, flow=flow_s, flow_rev=back_s, second=second,
-                    matches=Matches(m.uv0 / s, m.uv1 / s, m.valid), features=features,
-                    valid=np.ones(S, bool), last=np.arange(S) == S - 1, index=np.arange(S, dtype=np.int32))
-    return pad_inputs(inputs, padded_length(S, cfg))
+    kp = cfg.keypoints
+    dets, pairs, per_frame = {}, {}, {}
+
+    def detection(t):
+        if t not in dets:
+            dets[t] = okp.detect(images[t], kp)
+        return dets[t]
+
+    def pair(t):
+        """(flow, flow_rev) of frame t with its partner at reduced resolution."""
+        if t not in pairs:
+            p = partner[t]
+            if p == t + 1:
+                fwd = np.asarray(flow[t] if flow is not None else oflow.compute_flow(images[t], images[p], cfg.flow),
+                                 np.float32)
+                bwd = oflow.compute_flow(images[p], images[t], cfg.flow)
+                pairs[t] = (_shrink(fwd[None], s)[0] / s, _shrink(bwd[None], s)[0] / s)
+            else:  # the last frame's pair (S-1, S-2) is the pair (S-2, S-1) reversed
+                pairs[t] = pair(p)[::-1]
+        return pairs[t]
+
+    for a in range(0, L, size):
+        real = range(a, min(a + size, S))
+        for t in real:
+            m = okp.match_detections(detection(t), detection(partner[t]), kp)
+            f = okp.features_from(detection(t), cfg.feature_capacity, kp)
+            fl, fr = pair(t)
+            per_frame[t] = (fl, fr, m, f)
+            if progress is not None:
+                progress(t + 1, S)
+        idx = np.minimum(np.arange(a, a + size), S - 1)
+        prev = np.maximum(idx - 1, 0)
+        flow_s = np.stack([per_frame[t][0] for t in idx]).astype(np.float32)
+        back_s = np.stack([per_frame[t][1] for t in idx]).astype(np.float32)
+        pick = lambda k, field: np.stack([getattr(per_frame[t][k], field) for t in idx])  # noqa: E731
+        at = lambda i: jax.tree.map(lambda x: x[i], frame)  # noqa: E731
+        second = SecondPair(partner=at(prev), flow=np.stack([pair(t)[1] for t in prev]).astype(np.float32),
+                            flow_rev=np.stack([pair(t)[0] for t in prev]).astype(np.float32),
+                            valid=(idx >= 1) & (idx < S - 1))
+        keep = np.arange(a, a + size) < S
+        yield a, Inputs(frame=at(idx), partner=at(partner[idx]), flow=flow_s, flow_rev=back_s, second=second,
+                        matches=Matches(pick(2, "uv0") / s, pick(2, "uv1") / s, pick(2, "valid")),
+                        features=Features(np.asarray(pick(3, "uv") / s, np.float32), pick(3, "desc"),
+                                          pick(3, "valid")),
+                        valid=keep, last=(idx == S - 1) & keep, index=idx.astype(np.int32))
+        last_needed = min(a + size, S) - 1  # the next piece's first frame needs this one's pair
+        for t in [t for t in per_frame if t < last_needed]:
+            del per_frame[t]
+        for t in [t for t in pairs if t < last_needed and t != S - 2]:
+            del pairs[t]
+        for t in [t for t in dets if t < last_needed]:
+            del dets[t]
+
+
+def prepare(sequence, cfg: PipelineConfig = PipelineConfig(), flow=None, progress=None) -> Inputs:
+    """Numpy :class:`Inputs` of a :class:`cm3d.data.Sequence`: flow and keypoint matches with each
+    frame's partner, keypoint features, 1/stride, padding to :func:`padded_length`. ``flow``: optional
+    precomputed forward flow (S-1, H, W, 2); ``progress``: optional ``(done, total)`` per frame."""
+    pieces = [x for _, x in prepare_chunks(sequence, cfg, flow, progress)]
+    return jax.tree.map(lambda *a: np.concatenate(a), *pieces)
 
 
 def pad_inputs(inputs: Inputs, length: int) -> Inputs:
