@@ -81,10 +81,15 @@ class _Progress:
 
 
 def _compile_cache() -> None:
-    """Keep compiled programs between runs (``$CM3D_JAX_CACHE``, default ~/.cache/cm3d/jax; ``off``
-    disables): a second ``cm3d run`` of the same image size skips the pipeline's compilation."""
+    """Keep compiled programs between runs: XLA's cache (``$CM3D_JAX_CACHE``, default
+    ~/.cache/cm3d/jax) and the pipeline's serialised executables (``$CM3D_PROGRAM_CACHE``, default
+    ~/.cache/cm3d/programs: a second ``cm3d run`` of the same configuration and image size loads
+    them instead of tracing); ``off`` disables either."""
     import os
 
+    from cm3d import programs
+
+    programs.set_cache_dir(programs.dir_from_env(Path.home() / ".cache" / "cm3d" / "programs"))
     path = os.environ.get("CM3D_JAX_CACHE", str(Path.home() / ".cache" / "cm3d" / "jax"))
     if path.lower() in ("", "0", "off", "none"):
         return

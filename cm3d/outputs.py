@@ -6,9 +6,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import jax
 import numpy as np
 
-from cm3d import memory
+from cm3d import memory, programs
 from cm3d.data.atomic import atomic_write, check_writable_folder
 from cm3d.data.tum import write_tum
 from cm3d.ops import camera, sim3
@@ -115,6 +116,29 @@ def _trajectory_metrics(ts, gt, est) -> dict:
     return metrics.evaluate_trajectories(ts, gt, ts, est)
 
 
+def _depth_metrics_jit(pred, gt):
+    """Prior depth against the ground truth on pixels with both (one stored program per shape)."""
+    from cm3d.eval import metrics
+
+    return metrics.depth_metrics(pred, gt, (gt > 0) & (pred > 0))
+
+
+def _mask_metrics_jit(pred, gt):
+    from cm3d.eval import metrics
+
+    return metrics.mask_metrics(pred, gt)
+
+
+def _align_jit(est, gt):
+    from cm3d.eval import metrics
+
+    return metrics.align_trajectory(est, gt)
+
+
+_depth_metrics_jit, _mask_metrics_jit, _align_jit = (jax.jit(f) for f in (_depth_metrics_jit, _mask_metrics_jit,
+                                                                           _align_jit))
+
+
 def sequence_metrics(result) -> dict | None:
     """Metrics of a :class:`cm3d.pipeline.SequenceResult` against its ground truth (None without):
     ATE (Sim3, SE3), RPE and rotation error of the prior and the refined trajectory, whether ATE is
@@ -134,10 +158,11 @@ def sequence_metrics(result) -> dict | None:
     out["ate_defined"] = out["prior"]["ate_defined"] and out["refined"]["ate_defined"]
     out["ate_reduction_pct"] = 100.0 * (a - b) / a if a > 0 else None
     pred = np.asarray(seq.depth)
-    dm = metrics.depth_metrics(pred, gt.depth, (gt.depth > 0) & (pred > 0))
+    dm = programs.call("depth_metrics", _depth_metrics_jit, {}, pred, np.asarray(gt.depth))
     out["depth_prior"] = {k: float(v) for k, v in dm.items()}
     if gt.dynamic_mask is not None:
-        mm = metrics.mask_metrics(result.masks, gt.dynamic_mask)
+        mm = programs.call("mask_metrics", _mask_metrics_jit, {}, np.asarray(result.masks, bool),
+                           np.asarray(gt.dynamic_mask))
         out["mask"] = {k: float(v) for k, v in mm.items()}
     report = getattr(result, "report", None)
     if report is not None:
@@ -245,13 +270,14 @@ def write_results(out_dir, result, bank=None, overlay_every: int = 5, pictures: 
     if m is not None:
         write_json(out / "metrics.json", m)
     if pictures:
-        from cm3d.eval import metrics as em
         from cm3d.eval import plots
 
         plots.save_mask_overlays(out / "overlays", seq.images, result.masks, every=overlay_every)
         trajs = {"prior": result.prior, "refined": result.poses}
         if seq.gt is not None:  # aligned in float32: a picture
-            trajs = {k: np.asarray(em.align_trajectory(v, seq.gt.cam_to_world)) for k, v in trajs.items()}
+            gt_c2w = np.asarray(seq.gt.cam_to_world, np.float32)
+            trajs = {k: np.asarray(programs.call("align_trajectory", _align_jit, {}, np.asarray(v, np.float32),
+                                                 gt_c2w)) for k, v in trajs.items()}
             trajs["ground truth"] = seq.gt.cam_to_world
         plots.plot_trajectories(out / "trajectory.png", trajs, title="prior vs refined" +
                                 (" vs ground truth (Sim3-aligned)" if seq.gt is not None else ""))

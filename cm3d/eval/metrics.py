@@ -152,6 +152,12 @@ def pose_metrics(est, gt, valid=None) -> dict:
 _pose_metrics_jit = jax.jit(pose_metrics)
 
 
+@jax.jit
+def _trajectory_metrics_jit(est, gt) -> dict:
+    """:func:`pose_metrics` and :func:`rotation_rmse` in one program (a stored one: :mod:`cm3d.programs`)."""
+    return {**pose_metrics(est, gt), "rot_rmse": rotation_rmse(est, gt)}
+
+
 def rotation_rmse(est, gt, valid=None):
     """Rotation error (degrees, RMS over frames) after the best global rotation, whatever the
     positions: ``R* = argmin sum |R_gt_i - R* R_est_i|_F`` (the SO(3) projection of
@@ -251,10 +257,12 @@ def evaluate_trajectories(gt_ts, gt_c2w, est_ts, est_c2w, max_diff: float = 0.01
             f"only {len(i_gt)} associated poses (gt {len(gt_ts)}, est {len(est_ts)}, "
             f"max_diff {max_diff} s); need at least 2"
         )
+    from cm3d import programs
+
     with jax.enable_x64(True):
-        m = _pose_metrics_jit(jnp.asarray(est_c2w[i_est]), jnp.asarray(gt_c2w[i_gt]))
-        out = {k: float(m[k]) for k in ("ate", "ate_se3", "rpe_trans", "rpe_rot")}
-        out["rot_rmse"] = float(rotation_rmse(jnp.asarray(est_c2w[i_est]), jnp.asarray(gt_c2w[i_gt])))
+        m = programs.call("trajectory_metrics", _trajectory_metrics_jit, {}, jnp.asarray(est_c2w[i_est]),
+                          jnp.asarray(gt_c2w[i_gt]))
+        out = {k: float(m[k]) for k in ("ate", "ate_se3", "rpe_trans", "rpe_rot", "rot_rmse")}
     out["pairs"] = int(len(i_gt))
     out["extent"] = trajectory_extent(gt_c2w[i_gt])
     out["ate_defined"] = ate_is_defined(out["ate"], out["extent"], out["pairs"])

@@ -6,13 +6,14 @@ from cm3d.pipeline.config import PipelineConfig, TrackCheckConfig, bank_config, 
 from cm3d.pipeline.landmarks import advance_landmarks, landmark_observations, seed_landmarks  # noqa: F401
 from cm3d.pipeline.memory_graph import (MemoryStep, RecallReport, memory_refinement, memory_surface,  # noqa: F401
                                         recall_verify_update, sequence_query, window_entry)
-from cm3d.pipeline.prepare import Features, Inputs, pad_inputs, padded_length, prepare, scale_intrinsics  # noqa: F401
+from cm3d.pipeline.prepare import (Features, Inputs, pad_inputs, padded_length, prepare, prepare_chunks,  # noqa: F401
+                                   scale_intrinsics)
 from cm3d.pipeline.photometric import PhotometricCheck, check_refinement, warp_errors  # noqa: F401
-from cm3d.pipeline.run import (RunReport, SequenceResult, WindowRecord, collect, prior_result,  # noqa: F401
-                               recalled_earlier_map, run)
+from cm3d.pipeline.run import (RunReport, SequenceResult, WindowRecord, collect, initial_state,  # noqa: F401
+                               prior_result, recalled_earlier_map, run)
 from cm3d.pipeline.state import (Landmarks, MapState, MemoryCursor, Window, begin_sequence,  # noqa: F401
-                                 empty_landmarks, empty_window, init_state)
-from cm3d.pipeline.step import (StepOutputs, WindowResult, _run_sequence, buffer_frame, run_sequence,  # noqa: F401
-                                static_mask, step, step_jit, window_end)
+                                 empty_bank_host, empty_landmarks, empty_window, fresh_state, init_state)
+from cm3d.pipeline.step import (StepOutputs, WindowResult, _run_sequence, buffer_frame, run_frames,  # noqa: F401
+                                run_sequence, static_mask, step, step_jit, window_end)
 from cm3d.pipeline.window import (factor_graph, gate_refinement, prior_consistent_tracks,  # noqa: F401
                                   rescale_window, structure_only_cost)

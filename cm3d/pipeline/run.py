@@ -19,9 +19,10 @@ from cm3d import memory
 from cm3d.data import quality
 from cm3d.pipeline.config import PipelineConfig
 from cm3d.pipeline.photometric import PhotometricCheck, check_refinement
-from cm3d.pipeline.prepare import Inputs, prepare
-from cm3d.pipeline.state import init_state
-from cm3d.pipeline.step import StepOutputs, run_sequence
+from cm3d import programs
+from cm3d.pipeline.prepare import Inputs, prepare_chunks
+from cm3d.pipeline.state import empty_bank_host, fresh_state
+from cm3d.pipeline.step import StepOutputs, run_frames
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -176,6 +177,35 @@ def _without_hole_features(inputs: Inputs) -> Inputs:
     return inputs.replace(features=f.replace(valid=np.asarray(f.valid) & on_depth))
 
 
+def initial_state(inputs: Inputs, cfg: PipelineConfig, bank: memory.MemoryBank | None = None):
+    """:func:`cm3d.pipeline.init_state` for pieces shaped like ``inputs``, as one stored program
+    (:mod:`cm3d.programs`) around ``bank`` (None: a new empty bank of ``cfg.memory``)."""
+    h, w = inputs.frame.depth.shape[-2:]
+    n, dk = inputs.features.desc.shape[-2:]
+    bank = empty_bank_host(cfg.memory) if bank is None else bank
+    return programs.call("fresh_state", fresh_state, {"cfg": cfg, "shape": (int(h), int(w), int(n), int(dk))}, bank)
+
+
+def _run_pieces(seq, cfg: PipelineConfig, state, bank, progress):
+    """The back end over one sequence, a piece of ``keyframe_interval`` frames at a time: while the
+    device runs piece k (asynchronous dispatch), the host prepares piece k+1. ``state``: the
+    previous sequence's (None: a fresh one around ``bank``). Returns (state, NumPy StepOutputs and
+    Inputs of the padded sequence)."""
+    outs, hosts = [], []
+    for first, piece in prepare_chunks(seq, cfg, progress=progress):
+        piece = _without_hole_features(piece)
+        if state is None:
+            state = initial_state(piece, cfg, bank)
+        elif state.window.depth.shape[1:] != piece.frame.depth.shape[1:]:
+            state = initial_state(piece, cfg, state.bank)  # another image size: new buffers, same bank
+        x = jax.tree.map(jnp.asarray, piece)
+        state, out = programs.call("run_frames", run_frames, {"cfg": cfg}, state, x, np.bool_(first == 0))
+        outs.append(out)
+        hosts.append(piece)
+    stack = lambda parts: jax.tree.map(lambda *a: np.concatenate([np.asarray(p) for p in a]), *parts)  # noqa: E731
+    return state, stack(outs), stack(hosts)
+
+
 def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBank | None = None,
         progress=None, checks: bool = True, observe=None) -> tuple[memory.MemoryBank, list[SequenceResult]]:
     """The pipeline on one or several visits (sequences or paths any loader reads) threading one
@@ -205,16 +235,7 @@ def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBa
                 observe(i, None, None, results[-1], state.bank if state is not None else bank)
             continue
         cb = None if progress is None else (lambda d, n, i=i: progress(f"visit {i}: flow", d, n))
-        host_inputs = _without_hole_features(prepare(quality.fill_depth_holes(seq), cfg, progress=cb))
-        inputs = jax.tree.map(jnp.asarray, host_inputs)
-        if state is None:
-            state = init_state(inputs, cfg, bank)
-        elif state.window.depth.shape[1:] != inputs.frame.depth.shape[1:]:
-            state = init_state(inputs, cfg, state.bank)  # another image size: new buffers, same bank
-        if progress is not None:
-            progress(f"visit {i}: back end", 0, 1)
-        state, out = run_sequence(state, inputs, cfg)
-        jax.block_until_ready(out)
+        state, out, host_inputs = _run_pieces(quality.fill_depth_holes(seq), cfg, state, bank, cb)
         if progress is not None:
             progress(f"visit {i}: back end", 1, 1)
         res = collect(out, seq, cfg)
@@ -227,5 +248,5 @@ def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBa
             res.report = RunReport(q, ph, ph.kept, True, warnings)
         results.append(res)
         if observe is not None:
-            observe(i, host_inputs, jax.tree.map(np.asarray, out), res, state.bank)
+            observe(i, host_inputs, out, res, state.bank)
     return (state.bank if state is not None else bank), results

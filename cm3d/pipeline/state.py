@@ -6,6 +6,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from cm3d import memory
@@ -111,11 +112,29 @@ def init_state(inputs: Inputs, cfg: PipelineConfig = PipelineConfig(), bank: mem
     n, dk = inputs.features.desc.shape[-2:]
     if bank is None:
         bank = memory.empty(memory_cfg or cfg.memory)
-    eye = jnp.eye(4, dtype=jnp.float32)
-    return MapState(bank=bank, key=jax.random.PRNGKey(cfg.seed), window=empty_window(cfg, h, w, n, dk),
-                    landmarks=empty_landmarks(cfg, h, w), prev_flow=jnp.zeros((h, w, 2), jnp.float32),
-                    anchor_pose=eye, anchor_prior=eye, cursor=MemoryCursor.none(),
-                    slot=jnp.zeros((), jnp.int32), frames=jnp.zeros((), jnp.int32))
+    return _fresh_state(bank, cfg, (h, w, n, dk))
+
+
+def _fresh_state(bank: memory.MemoryBank, cfg: PipelineConfig, shape: tuple) -> MapState:
+    h, w, n, dk = shape
+    return MapState(
+        bank=bank, key=jax.random.PRNGKey(cfg.seed), window=empty_window(cfg, h, w, n, dk),
+        landmarks=empty_landmarks(cfg, h, w), prev_flow=jnp.zeros((h, w, 2), jnp.float32),
+        anchor_pose=jnp.eye(4, dtype=jnp.float32), anchor_prior=jnp.eye(4, dtype=jnp.float32),
+        cursor=MemoryCursor.none(), slot=jnp.zeros((), jnp.int32), frames=jnp.zeros((), jnp.int32))
+
+
+#: ``fresh_state(bank, cfg, shape)``: :func:`init_state` as one compiled program around a given bank
+#: (``shape`` = (h, w, features per frame, feature dimension)); the values are :func:`init_state`'s.
+fresh_state = jax.jit(_fresh_state, static_argnames=("cfg", "shape"))
+
+
+def empty_bank_host(cfg: memory.MemoryConfig) -> memory.MemoryBank:
+    """:func:`cm3d.memory.empty` without one eager dispatch per field: NumPy zeros, and the hash
+    planes computed as :func:`cm3d.memory.empty` does (bitwise the same bank)."""
+    spec = jax.eval_shape(lambda: memory.empty(cfg))
+    bank = jax.tree.map(lambda a: np.zeros(a.shape, a.dtype), spec)
+    return bank.replace(planes=descriptors.hash_planes(cfg.image_dim, cfg.hash_bits, cfg.hash_seed).astype(jnp.float32))
 
 
 def begin_sequence(state: MapState) -> MapState:

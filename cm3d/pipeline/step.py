@@ -192,3 +192,16 @@ def _run_sequence(state: MapState, inputs: Inputs, cfg: PipelineConfig):
 #: (the window, tracks and anchor are reset first; the memory bank carries over).
 run_sequence = jax.jit(_run_sequence, static_argnames="cfg")
 step_jit = jax.jit(step, static_argnames="cfg")
+
+
+def _run_frames(state: MapState, inputs: Inputs, fresh, cfg: PipelineConfig):
+    state = jax.tree.map(lambda a, b: jnp.where(fresh, a, b), begin_sequence(state), state)
+    return jax.lax.scan(functools.partial(step, cfg=cfg), state, inputs)
+
+
+#: ``run_frames(state, inputs, fresh, cfg)``: the next frames of a sequence in one compiled
+#: ``lax.scan`` of :func:`step`, continuing ``state``; ``fresh`` (bool scalar, traced): these frames
+#: start a new sequence (the reset of :func:`run_sequence` first). One program serves every piece of
+#: every sequence length: :func:`cm3d.pipeline.prepare.prepare_chunks` cuts the padded sequence
+#: into pieces of ``keyframe_interval`` frames.
+run_frames = jax.jit(_run_frames, static_argnames="cfg")

@@ -1,0 +1,178 @@
+"""Compiled programs kept between processes: a jitted function lowered and compiled once for a
+configuration and argument shapes is serialised (``jax.experimental.serialize_executable``) to a
+cache folder, and a later process loads the executable instead of tracing, lowering and compiling
+it again. The file's key hashes everything that decides the program: its name, the static
+configuration's ``repr``, the arguments' tree structure, shapes and dtypes, the jax and jaxlib
+versions, the backend (platform, version, device kind and count), the x64 flag and the source of
+every ``cm3d`` module; a file whose stored key differs is never loaded (it is compiled afresh and
+overwritten). Without a folder (:func:`set_cache_dir` ``None``, the library's default) a program is
+compiled in memory once per process, like ``jax.jit``. Host side only: nothing here is traced."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import pickle
+import threading
+import warnings
+from pathlib import Path
+
+import jax
+import numpy as np
+
+FORMAT = 1  # bump when the file layout changes
+_lock = threading.Lock()
+_state = {"dir": None, "source": None}
+_loaded: dict = {}  # key -> jax.stages.Compiled, this process's programs
+
+
+def set_cache_dir(path) -> None:
+    """Keep serialised programs in ``path`` (created on the first write); ``None``: in memory only."""
+    _state["dir"] = None if path is None else Path(path)
+
+
+def cache_dir() -> Path | None:
+    """The folder :func:`set_cache_dir` set (None: programs stay in memory)."""
+    return _state["dir"]
+
+
+def source_digest() -> str:
+    """SHA-256 of every ``cm3d/**/*.py`` (relative path and bytes, sorted): any edit to the package,
+    a traced module or not, changes every key."""
+    if _state["source"] is None:
+        root = Path(__file__).resolve().parent
+        h = hashlib.sha256()
+        for p in sorted(root.rglob("*.py")):
+            h.update(str(p.relative_to(root)).encode())
+            h.update(p.read_bytes())
+        _state["source"] = h.hexdigest()
+    return _state["source"]
+
+
+def environment() -> dict:
+    """What besides the arguments decides a compiled program: versions, backend, flags, source."""
+    import jaxlib
+
+    dev = jax.devices()[0]
+    return {"format": FORMAT, "jax": jax.__version__, "jaxlib": jaxlib.__version__,
+            "platform": dev.platform, "platform_version": dev.client.platform_version,
+            "device_kind": dev.device_kind, "devices": jax.device_count(),
+            "x64": bool(jax.config.jax_enable_x64), "source": source_digest()}
+
+
+def _signature(args) -> tuple[str, list]:
+    leaves, tree = jax.tree.flatten(args)
+    return str(tree), [(tuple(np.shape(x)), str(x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype),
+                        bool(getattr(x, "weak_type", False))) for x in leaves]
+
+
+def program_key(name: str, static, args, env: dict | None = None) -> str:
+    """The hex key of program ``name`` compiled with ``static`` (its ``repr`` is hashed) for
+    arguments shaped like ``args`` in environment ``env`` (default :func:`environment`)."""
+    tree, avals = _signature(args)
+    env = environment() if env is None else env
+    h = hashlib.sha256()
+    for part in (name, repr(static), tree, repr(avals), repr(sorted(env.items()))):
+        h.update(part.encode())
+        h.update(b"\0")
+    return h.hexdigest()
+
+
+def _path(name: str, key: str) -> Path:
+    return _state["dir"] / f"{name}-{key[:40]}.jaxexe"
+
+
+def _runtime_ready() -> None:
+    """What lowering would have set up in this process: the LAPACK kernels that CPU programs call
+    (jaxlib fills their pointers when a program using them is lowered; a loaded program is not)."""
+    try:
+        from jax._src.lax import linalg
+
+        linalg.initialize_lapack()
+    except Exception:  # noqa: BLE001  another jaxlib: its loaded programs are checked by the tests
+        pass
+
+
+def _load(path: Path, key: str):
+    from jax.experimental import serialize_executable
+
+    try:
+        with open(path, "rb") as f:
+            stored_key, payload, in_tree, out_tree = pickle.load(f)
+    except FileNotFoundError:
+        return None
+    except Exception as err:  # noqa: BLE001  a damaged file: compile afresh and overwrite it
+        warnings.warn(f"program cache: {path} unreadable ({type(err).__name__}: {err}); compiling afresh",
+                      stacklevel=3)
+        return None
+    if stored_key != key:
+        return None
+    _runtime_ready()
+    try:
+        return serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+    except Exception as err:  # noqa: BLE001  an executable this runtime cannot load
+        warnings.warn(f"program cache: {path} not loadable ({type(err).__name__}: {err}); compiling afresh",
+                      stacklevel=3)
+        return None
+
+
+def _store(path: Path, key: str, compiled) -> None:
+    from jax.experimental import serialize_executable
+
+    from cm3d.data.atomic import atomic_write
+
+    try:
+        payload, in_tree, out_tree = serialize_executable.serialize(compiled)
+        blob = pickle.dumps((key, payload, in_tree, out_tree), protocol=pickle.HIGHEST_PROTOCOL)
+        with atomic_write(path) as f:
+            f.write(blob)
+    except Exception as err:  # noqa: BLE001  a cache that cannot be written only costs time
+        warnings.warn(f"program cache: could not write {path} ({type(err).__name__}: {err})", stacklevel=3)
+
+
+def compiled(name: str, fn, static: dict, *args):
+    """The compiled ``fn`` (a ``jax.jit`` function) for ``static`` keyword arguments and arguments
+    shaped like ``args``: from this process's table, else from the cache folder, else lowered and
+    compiled (and stored). Returns ``(a jax.stages.Compiled to call with *args, how)``, ``how``
+    one of "memory", "loaded", "compiled"."""
+    key = program_key(name, tuple(sorted(static.items())), args)
+    with _lock:
+        prog = _loaded.get(key)
+        if prog is not None:
+            return prog, "memory"
+        how = "loaded"
+        prog = _load(_path(name, key), key) if _state["dir"] is not None else None
+        if prog is None:
+            how = "compiled"
+            prog = fn.lower(*args, **static).compile()
+            if _state["dir"] is not None:
+                _store(_path(name, key), key, prog)
+        _loaded[key] = prog
+        return prog, how
+
+
+def call(name: str, fn, static: dict, *args):
+    """``fn(*args, **static)`` through :func:`compiled` (the result of the same program)."""
+    return compiled(name, fn, static, *args)[0](*args)
+
+
+def clear_memory() -> None:
+    """Forget this process's compiled programs (the next call loads or compiles again); tests."""
+    with _lock:
+        _loaded.clear()
+
+
+def prefetch(name: str, fn, static: dict, *args) -> threading.Thread:
+    """Start :func:`compiled` in a thread (loading a stored executable overlaps host work);
+    ``args`` may be ``jax.ShapeDtypeStruct`` trees. Returns the started thread."""
+    t = threading.Thread(target=compiled, args=(name, fn, static, *args), daemon=True)
+    t.start()
+    return t
+
+
+def dir_from_env(default) -> Path | None:
+    """The folder named by ``$CM3D_PROGRAM_CACHE`` (``off``/``0``/empty: None), else ``default``."""
+    path = os.environ.get("CM3D_PROGRAM_CACHE")
+    if path is None:
+        return None if default is None else Path(default)
+    return None if path.lower() in ("", "0", "off", "none") else Path(path)

@@ -1,0 +1,114 @@
+"""cm3d.programs: stored executables give the results of tracing afresh, and a changed
+configuration, jax version or source never loads a stale one."""
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cm3d import programs
+from cm3d.eval import metrics
+
+
+@dataclasses.dataclass(frozen=True)
+class _Cfg:
+    power: int = 2
+    scale: float = 0.5
+
+
+@functools.partial(jax.jit, static_argnames="cfg")
+def _program(x, y, cfg: _Cfg = _Cfg()):
+    return {"a": jnp.sum(jnp.sin(x) ** cfg.power) * cfg.scale + y @ y.T, "b": jnp.cumsum(x)}
+
+
+@pytest.fixture
+def cache(tmp_path):
+    programs.set_cache_dir(tmp_path)
+    programs.clear_memory()
+    yield tmp_path
+    programs.set_cache_dir(None)
+    programs.clear_memory()
+
+
+def _args(seed=0):
+    r = np.random.default_rng(seed)
+    return r.normal(size=64).astype(np.float32), r.normal(size=(8, 3)).astype(np.float32)
+
+
+def _equal(a, b):
+    return jax.tree.structure(a) == jax.tree.structure(b) and all(
+        np.array_equal(np.asarray(u), np.asarray(v)) for u, v in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+
+
+def test_loaded_program_equals_tracing_afresh(cache):
+    x, y = _args()
+    _, how = programs.compiled("p", _program, {"cfg": _Cfg()}, x, y)
+    assert how == "compiled" and len(list(cache.glob("p-*.jaxexe"))) == 1
+    programs.clear_memory()  # as a second process: from the file, not traced
+    prog, how = programs.compiled("p", _program, {"cfg": _Cfg()}, x, y)
+    assert how == "loaded"
+    assert programs.compiled("p", _program, {"cfg": _Cfg()}, x, y)[1] == "memory"
+    x2, y2 = _args(1)
+    assert _equal(prog(x2, y2), _program(x2, y2, cfg=_Cfg()))  # bitwise, on other values too
+    # the trajectory metrics (float64, a pytree of results) through the cache equal the plain jit
+    est, gt = np.tile(np.eye(4), (6, 1, 1)), np.tile(np.eye(4), (6, 1, 1))
+    est[:, :3, 3] = np.random.default_rng(2).normal(size=(6, 3))
+    gt[:, :3, 3] = est[:, :3, 3] * 2 + 0.01
+    with jax.enable_x64(True):
+        fresh = metrics._trajectory_metrics_jit(jnp.asarray(est), jnp.asarray(gt))
+        programs.call("traj", metrics._trajectory_metrics_jit, {}, jnp.asarray(est), jnp.asarray(gt))
+        programs.clear_memory()
+        loaded = programs.call("traj", metrics._trajectory_metrics_jit, {}, jnp.asarray(est), jnp.asarray(gt))
+    assert _equal(fresh, loaded)
+
+
+def test_changed_config_version_or_source_never_loads_a_stale_program(cache, monkeypatch):
+    x, y = _args()
+    programs.compiled("p", _program, {"cfg": _Cfg()}, x, y)
+    programs.clear_memory()
+    other = _Cfg(power=3)
+    prog, how = programs.compiled("p", _program, {"cfg": other}, x, y)
+    assert how == "compiled" and _equal(prog(x, y), _program(x, y, cfg=other))
+    assert programs.compiled("p", _program, {"cfg": _Cfg()}, x[:32], y)[1] == "compiled"  # other shape
+    env = programs.environment()
+    for field, value in (("jax", "0.0.1"), ("jaxlib", "0.0.1"), ("source", "0" * 64), ("platform", "tpu")):
+        key = programs.program_key("p", (("cfg", _Cfg()),), (x, y), {**env, field: value})
+        assert key != programs.program_key("p", (("cfg", _Cfg()),), (x, y), env), field
+    programs.clear_memory()
+    monkeypatch.setattr(jax, "__version__", "0.0.1")  # another jax: its key names no stored file
+    assert programs.compiled("p", _program, {"cfg": _Cfg()}, x, y)[1] == "compiled"
+    monkeypatch.undo()
+    # a file whose stored key is another's (a truncated-name clash) is not loaded
+    programs.clear_memory()
+    real = programs.program_key("p", (("cfg", _Cfg()),), (x, y))
+    path = programs._path("p", real)
+    wrong = programs._path("p", programs.program_key("p", (("cfg", other),), (x, y)))
+    path.write_bytes(wrong.read_bytes())
+    prog, how = programs.compiled("p", _program, {"cfg": _Cfg()}, x, y)
+    assert how == "compiled" and _equal(prog(x, y), _program(x, y, cfg=_Cfg()))
+
+
+def test_a_damaged_file_is_compiled_afresh(cache):
+    x, y = _args()
+    programs.compiled("p", _program, {"cfg": _Cfg()}, x, y)
+    (path,) = cache.glob("p-*.jaxexe")
+    path.write_bytes(b"not a program")
+    programs.clear_memory()
+    with pytest.warns(UserWarning, match="unreadable"):
+        prog, how = programs.compiled("p", _program, {"cfg": _Cfg()}, x, y)
+    assert how == "compiled" and _equal(prog(x, y), _program(x, y, cfg=_Cfg()))
+    programs.clear_memory()
+    assert programs.compiled("p", _program, {"cfg": _Cfg()}, x, y)[1] == "loaded"  # rewritten
+
+
+def test_without_a_folder_programs_stay_in_memory(tmp_path):
+    programs.set_cache_dir(None)
+    programs.clear_memory()
+    x, y = _args()
+    assert programs.compiled("p", _program, {"cfg": _Cfg()}, x, y)[1] == "compiled"
+    assert programs.compiled("p", _program, {"cfg": _Cfg()}, x, y)[1] == "memory"
+    assert not list(tmp_path.iterdir())
+    programs.clear_memory()
