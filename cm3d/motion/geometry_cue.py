@@ -83,7 +83,8 @@ def geometry_motion_cue(prior_t: FramePrior, prior_t2: FramePrior, flow, cfg: Mo
     ``residual`` = distance of the flow to the ego flows of the depths within ``edge_radius_px``
     (:func:`~cm3d.motion.occlusion.depth_range_residual`; the plain ``|flow - ego_flow|`` inside a
     surface) under the flow-refined relative pose. Judged (``valid``) where depth is positive and
-    confident, in front of both cameras, inside the image and not occluded: the z-buffer test
+    confident (``depth_conf >= min_depth_conf`` and > 0: a zero confidence is no measurement, e.g.
+    a sensor hole that :func:`cm3d.data.quality.fill_depth_holes` filled), in front of both cameras, inside the image and not occluded: the z-buffer test
     against t2's depth (``cfg.occlusion``) and, with ``flow_back`` (H, W, 2), t2 -> t, the
     forward-backward check (it always keeps inconsistent pixels out of the pose fit, and out of
     the judgement with ``cfg.fb_occludes``: off by default, as DIS flow is also inconsistent on fast
@@ -92,7 +93,7 @@ def geometry_motion_cue(prior_t: FramePrior, prior_t2: FramePrior, flow, cfg: Mo
     """
     depth, K0, K1 = prior_t.depth, prior_t.intrinsic, prior_t2.intrinsic
     rel = relative_pose(prior_t, prior_t2)
-    conf_ok = (prior_t.depth_conf >= cfg.min_depth_conf) & (depth > camera.MIN_DEPTH)
+    conf_ok = (prior_t.depth_conf >= cfg.min_depth_conf) & (prior_t.depth_conf > 0) & (depth > camera.MIN_DEPTH)
     consistent = jnp.ones_like(conf_ok)
     if cfg.occlusion and flow_back is not None:
         consistent = forward_backward_consistent(flow, flow_back, cfg.fb_alpha, cfg.fb_beta_px2)
