@@ -176,7 +176,6 @@ def _run_chunks(chunks, cfg, bank, args, recorder=None):
 
 
 def _run(args) -> int:
-    from cm3d import long_video as stitch
     from cm3d import memory, outputs, pipeline
 
     out = outputs.check_output_folder(args.out)  # fail before any work
@@ -201,6 +200,8 @@ def _run(args) -> int:
     if chunks is None:
         cfg = pipeline.config_for(H, W, **changes)
     else:
+        from cm3d import long_video as stitch
+
         cfg = stitch.memory_config_for_chunks(H, W, [c.num_frames for c in chunks], **changes)
     if bank is not None:
         cfg = dataclasses.replace(cfg, memory=mem_cfg)

@@ -112,3 +112,18 @@ def test_without_a_folder_programs_stay_in_memory(tmp_path):
     assert programs.compiled("p", _program, {"cfg": _Cfg()}, x, y)[1] == "memory"
     assert not list(tmp_path.iterdir())
     programs.clear_memory()
+
+
+def test_the_prefetched_piece_is_shaped_like_the_prepared_one():
+    """pipeline.run loads the pieces' program from piece_spec before any OpenCV work: its key must
+    be the prepared piece's (else the prefetch loads a program nobody calls)."""
+    from cm3d import pipeline
+    from cm3d.data import synthetic
+    from cm3d.pipeline.prepare import piece_spec
+
+    cfg = pipeline.small_config()
+    seq = synthetic.generate(0, 0, 6, "moderate", synthetic.WorldConfig(height=48, width=64))
+    _, piece = next(pipeline.prepare_chunks(seq, cfg))
+    spec = piece_spec(seq, cfg)
+    x = jax.tree.map(jnp.asarray, piece)
+    assert programs.program_key("p", (), spec) == programs.program_key("p", (), x)

@@ -6,8 +6,8 @@ from cm3d.pipeline.config import PipelineConfig, TrackCheckConfig, bank_config, 
 from cm3d.pipeline.landmarks import advance_landmarks, landmark_observations, seed_landmarks  # noqa: F401
 from cm3d.pipeline.memory_graph import (MemoryStep, RecallReport, memory_refinement, memory_surface,  # noqa: F401
                                         recall_verify_update, sequence_query, window_entry)
-from cm3d.pipeline.prepare import (Features, Inputs, pad_inputs, padded_length, prepare, prepare_chunks,  # noqa: F401
-                                   scale_intrinsics)
+from cm3d.pipeline.prepare import (Features, Inputs, pad_inputs, padded_length, piece_spec, prepare,  # noqa: F401
+                                   prepare_chunks, scale_intrinsics)
 from cm3d.pipeline.photometric import PhotometricCheck, check_refinement, warp_errors  # noqa: F401
 from cm3d.pipeline.run import (RunReport, SequenceResult, WindowRecord, collect, initial_state,  # noqa: F401
                                prior_result, recalled_earlier_map, run)

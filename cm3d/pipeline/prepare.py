@@ -156,6 +156,30 @@ def prepare_chunks(sequence, cfg: PipelineConfig = PipelineConfig(), flow=None, 
             del dets[t]
 
 
+def piece_spec(sequence, cfg: PipelineConfig = PipelineConfig(), size: int | None = None) -> Inputs:
+    """The shapes and dtypes (``jax.ShapeDtypeStruct``) of one :func:`prepare_chunks` piece of
+    ``sequence`` as device arrays, known before any OpenCV work (to load its program meanwhile)."""
+    from cm3d.ops.keypoints import DESCRIPTOR_DIM
+
+    n = cfg.keyframe_interval if size is None else int(size)
+    _, H, W = sequence.depth.shape
+    s = cfg.stride
+    h, w = -(-H // s), -(-W // s)
+    img = np.asarray(sequence.images)
+    sd = jax.ShapeDtypeStruct
+    f32 = np.dtype(np.float32)
+    fp = FramePrior(image=sd((n, h, w) + img.shape[3:], img.dtype), depth=sd((n, h, w), f32),
+                    depth_conf=sd((n, h, w), f32), intrinsic=sd((n, 3, 3), f32), cam_to_world=sd((n, 4, 4), f32))
+    flow = sd((n, h, w, 2), f32)
+    M, C, D = cfg.keypoints.max_matches, cfg.feature_capacity, DESCRIPTOR_DIM[cfg.keypoints.detector]
+    b = np.dtype(bool)
+    return Inputs(frame=fp, partner=fp, flow=flow, flow_rev=flow,
+                  second=SecondPair(partner=fp, flow=flow, flow_rev=flow, valid=sd((n,), b)),
+                  matches=Matches(sd((n, M, 2), f32), sd((n, M, 2), f32), sd((n, M), b)),
+                  features=Features(sd((n, C, 2), f32), sd((n, C, D), f32), sd((n, C), b)),
+                  valid=sd((n,), b), last=sd((n,), b), index=sd((n,), np.dtype(np.int32)))
+
+
 def prepare(sequence, cfg: PipelineConfig = PipelineConfig(), flow=None, progress=None) -> Inputs:
     """Numpy :class:`Inputs` of a :class:`cm3d.data.Sequence`: flow and keypoint matches with each
     frame's partner, keypoint features, 1/stride, padding to :func:`padded_length`. ``flow``: optional

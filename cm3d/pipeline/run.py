@@ -9,6 +9,8 @@ nothing in the bank (:class:`RunReport`)."""
 from __future__ import annotations
 
 import dataclasses
+import functools
+import threading
 from typing import Any
 
 import jax
@@ -20,7 +22,7 @@ from cm3d.data import quality
 from cm3d.pipeline.config import PipelineConfig
 from cm3d.pipeline.photometric import PhotometricCheck, check_refinement
 from cm3d import programs
-from cm3d.pipeline.prepare import Inputs, prepare_chunks
+from cm3d.pipeline.prepare import Inputs, piece_spec, prepare_chunks
 from cm3d.pipeline.state import empty_bank_host, fresh_state
 from cm3d.pipeline.step import StepOutputs, run_frames
 
@@ -186,12 +188,45 @@ def initial_state(inputs: Inputs, cfg: PipelineConfig, bank: memory.MemoryBank |
     return programs.call("fresh_state", fresh_state, {"cfg": cfg, "shape": (int(h), int(w), int(n), int(dk))}, bank)
 
 
+def _prefetch(seq, cfg: PipelineConfig, state, bank):
+    """Load (or compile) the pieces' programs in a thread while the host prepares the first piece
+    (only with a program folder: in memory, the first call compiles them as before)."""
+    if programs.cache_dir() is None:
+        return None
+    spec = piece_spec(seq, cfg)
+
+    def load():
+        try:
+            _load_programs()
+        except Exception as err:  # noqa: BLE001  the pieces compile their programs themselves then
+            import warnings
+
+            warnings.warn(f"program prefetch failed ({type(err).__name__}: {err})", stacklevel=2)
+
+    def _load_programs():
+        st = state
+        if st is None or st.window.depth.shape[1:] != spec.frame.depth.shape[1:]:
+            h, w = spec.frame.depth.shape[-2:]
+            n, dk = spec.features.desc.shape[-2:]
+            b = (empty_bank_host(cfg.memory) if bank is None else bank) if st is None else st.bank
+            static = {"cfg": cfg, "shape": (int(h), int(w), int(n), int(dk))}
+            programs.compiled("fresh_state", fresh_state, static, b)
+            st = jax.eval_shape(functools.partial(fresh_state, **static), b)
+        st = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type), st)
+        programs.compiled("run_frames", run_frames, {"cfg": cfg}, st, spec, jax.ShapeDtypeStruct((), bool))
+
+    t = threading.Thread(target=load, daemon=True, name="cm3d-prefetch")
+    t.start()
+    return t
+
+
 def _run_pieces(seq, cfg: PipelineConfig, state, bank, progress):
     """The back end over one sequence, a piece of ``keyframe_interval`` frames at a time: while the
     device runs piece k (asynchronous dispatch), the host prepares piece k+1. ``state``: the
     previous sequence's (None: a fresh one around ``bank``). Returns (state, NumPy StepOutputs and
     Inputs of the padded sequence)."""
     outs, hosts = [], []
+    _prefetch(seq, cfg, state, bank)
     for first, piece in prepare_chunks(seq, cfg, progress=progress):
         piece = _without_hole_features(piece)
         if state is None:

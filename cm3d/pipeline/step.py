@@ -194,14 +194,27 @@ run_sequence = jax.jit(_run_sequence, static_argnames="cfg")
 step_jit = jax.jit(step, static_argnames="cfg")
 
 
+def _step_or_skip(state: MapState, inputs_t: Inputs, cfg: PipelineConfig):
+    """:func:`step` on a real frame; a padding frame (``valid`` False) costs nothing: the state is
+    kept and the outputs are zeros (what :func:`step` gives a padding frame, but for ``init_pose``
+    and ``window``, which nothing reads where ``window_end`` is False)."""
+    def skip(st, x):
+        empty = WindowResult.empty(cfg, bank_config(st.bank, cfg).top_k, st.landmarks.points.shape[0])
+        no = jnp.zeros((), bool)
+        return st, StepOutputs(mask=jnp.zeros(x.frame.depth.shape, bool), init_pose=jnp.zeros((4, 4), jnp.float32),
+                               window_end=no, window=empty, valid=no)
+
+    return jax.lax.cond(inputs_t.valid, functools.partial(step, cfg=cfg), skip, state, inputs_t)
+
+
 def _run_frames(state: MapState, inputs: Inputs, fresh, cfg: PipelineConfig):
     state = jax.tree.map(lambda a, b: jnp.where(fresh, a, b), begin_sequence(state), state)
-    return jax.lax.scan(functools.partial(step, cfg=cfg), state, inputs)
+    return jax.lax.scan(functools.partial(_step_or_skip, cfg=cfg), state, inputs)
 
 
 #: ``run_frames(state, inputs, fresh, cfg)``: the next frames of a sequence in one compiled
 #: ``lax.scan`` of :func:`step`, continuing ``state``; ``fresh`` (bool scalar, traced): these frames
 #: start a new sequence (the reset of :func:`run_sequence` first). One program serves every piece of
 #: every sequence length: :func:`cm3d.pipeline.prepare.prepare_chunks` cuts the padded sequence
-#: into pieces of ``keyframe_interval`` frames.
+#: into pieces of ``keyframe_interval`` frames; padding frames are skipped (:func:`_step_or_skip`).
 run_frames = jax.jit(_run_frames, static_argnames="cfg")
