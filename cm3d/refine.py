@@ -16,10 +16,12 @@ import numpy as np
 
 @dataclasses.dataclass(frozen=True)
 class RefineHints:
-    """Optional per-frame geometry for a refiner: depth (H, W) prior depth, residual (H, W) px."""
+    """Optional per-frame hints for a refiner: depth (H, W) prior depth, residual (H, W) px, uncertain
+    (H, W) bool: seed pixels that are probably background (:func:`background_movers`)."""
 
     depth: np.ndarray | None = None
     residual: np.ndarray | None = None
+    uncertain: np.ndarray | None = None
 
 
 class MaskRefiner(Protocol):
@@ -109,6 +111,8 @@ class GrabCutRefiner:
         m[_dilate(coarse, px(self.band_px))] = cv2.GC_PR_BGD
         m[coarse] = cv2.GC_PR_FGD
         m[_erode(coarse, px(self.core_px))] = cv2.GC_FGD
+        if hints.uncertain is not None:
+            m[np.asarray(hints.uncertain, bool) & coarse] = cv2.GC_PR_BGD
         for u, v in np.asarray(prompts).reshape(-1, 2):
             cv2.circle(m, (int(u), int(v)), px(self.prompt_radius), int(cv2.GC_FGD), -1)
         if not ((m == cv2.GC_BGD) | (m == cv2.GC_PR_BGD)).any():
@@ -164,10 +168,64 @@ class TrackConfig:
 
     support_px: int = 6
     grow: bool = True  # also seed with the candidate regions that overlap the tracked mask
+    motion_split: bool = True  # seed pixels that move with the background around them are only probable
+    motion_k: float = 3.0  # ... (:func:`background_movers` at k robust sigmas): the refiner decides by colour
     new_region_frac: float = 1e-3
     new_region_overlap: float = 0.2
     prompts_per_region: int = 8
     seed: int = 0
+
+
+def _affine_fit(uv, flow, iters: int = 5):
+    """Robust affine motion model (2, 3) of flow (N, 2) at pixels uv (N, 2): IRLS with Cauchy weights
+    at 2.385 x the residuals' robust scale. Returns (model, robust sigma of the inlier residual)."""
+    X = np.concatenate([uv, np.ones((len(uv), 1))], 1)
+    w = np.ones(len(uv))
+    for _ in range(iters):
+        A, *_ = np.linalg.lstsq(X * w[:, None], flow * w[:, None], rcond=None)
+        r = np.linalg.norm(flow - X @ A, axis=1)
+        sigma = max(1.4826 * np.median(r), 1e-3)
+        w = 1.0 / np.sqrt(1.0 + (r / (2.385 * sigma)) ** 2)
+    return A.T, sigma
+
+
+def background_movers(mask: np.ndarray, flow: np.ndarray, k: float = 3.0, max_samples: int = 4000,
+                      seed: int = 0) -> np.ndarray:
+    """Pixels of ``mask`` (H, W) whose flow (H, W, 2) moves like the background around it, not like
+    the object: a leak of the mask into the background (e.g. the area a mover uncovered).
+
+    An affine motion model is fitted robustly to the flow on the mask and one on the ring around it
+    (as wide as the object's radius); a mask pixel is a background mover when the ring's model
+    explains it within ``k`` of its robust sigmas and better than the object's, where the two models
+    predict motions more than ``k`` sigmas apart (where they agree, e.g. a camera following the
+    object, the flow cannot tell).
+    """
+    mask = np.asarray(mask, bool)
+    H, W = mask.shape
+    area = int(mask.sum())
+    out = np.zeros((H, W), bool)
+    if area < 16:
+        return out
+    ring = _dilate(mask, max(2, int(np.sqrt(area / np.pi)))) & ~mask
+    if ring.sum() < 16:
+        return out
+    rng = np.random.default_rng(seed)
+
+    def fit(region):
+        v, u = np.nonzero(region)
+        idx = rng.choice(len(u), min(len(u), max_samples), replace=False)
+        uv = np.stack([u[idx], v[idx]], 1).astype(np.float64)
+        return _affine_fit(uv, flow[v[idx], u[idx]].astype(np.float64))
+
+    (A_obj, _), (A_bg, s_bg) = fit(mask), fit(ring)
+    v, u = np.nonzero(mask)
+    X = np.stack([u, v, np.ones_like(u)], 1).astype(np.float64)
+    f = flow[v, u].astype(np.float64)
+    r_obj = np.linalg.norm(f - X @ A_obj.T, axis=1)
+    r_bg = np.linalg.norm(f - X @ A_bg.T, axis=1)
+    apart = np.linalg.norm(X @ (A_obj - A_bg).T, axis=1) > k * s_bg
+    out[v, u] = (r_bg <= k * s_bg) & (r_bg < r_obj) & apart
+    return out
 
 
 def new_motion(candidates: np.ndarray, tracked: np.ndarray, cfg: TrackConfig = TrackConfig()) -> np.ndarray:
@@ -218,11 +276,15 @@ def refine_and_track(images: np.ndarray, flows: np.ndarray, candidates: np.ndarr
     prev = None
     for t in range(T):
         cand = np.asarray(candidates[t], bool)
+        uncertain = None
         if prev is None:
             seed_mask = np.asarray(detect(t), bool)
             detected[t] = True
         else:
             warped = np.asarray(warp_mask(prev, flows[t - 1]))
+            if cfg.motion_split:
+                movers = background_movers(prev, flows[t - 1], cfg.motion_k, seed=cfg.seed + t)
+                uncertain = np.asarray(warp_mask(movers, flows[t - 1])) if movers.any() else None
             tracked = warped & _dilate(cand, cfg.support_px)
             if cfg.grow:
                 tracked = tracked | overlapping(cand, tracked)
@@ -232,8 +294,9 @@ def refine_and_track(images: np.ndarray, flows: np.ndarray, candidates: np.ndarr
                 seed_mask = tracked | (np.asarray(detect(t), bool) & fresh)
             else:
                 seed_mask = tracked
-        prompts, ids, _ = sample_prompts(seed_mask, cfg.prompts_per_region, cfg.seed + t)
-        hints = RefineHints(None if depth is None else depth[t], None if residual is None else residual[t])
+        sure = seed_mask if uncertain is None else seed_mask & ~uncertain
+        prompts, ids, _ = sample_prompts(sure, cfg.prompts_per_region, cfg.seed + t)
+        hints = RefineHints(None if depth is None else depth[t], None if residual is None else residual[t], uncertain)
         refined = np.asarray(refiner(images[t], seed_mask, prompts, ids, hints), bool)
         masks[t] = refined
         prev = refined

@@ -199,6 +199,43 @@ def test_grabcut_refiner_snaps_a_dilated_mask_to_the_object():
     assert refine.GrabCutRefiner()(img, full, pts, ids).all()
 
 
+def _leak_scene(obj_flow):
+    """Flow (64, 96, 2): background (-3, 0) px plus a slight zoom, a square object moving
+    ``obj_flow``; the mask is the object plus a 6-px leak into the background on its left."""
+    H, W = 64, 96
+    v, u = np.mgrid[0:H, 0:W].astype(np.float32)
+    flow = np.stack([-3.0 + 0.01 * (u - W / 2), 0.01 * (v - H / 2)], -1)
+    obj = np.zeros((H, W), bool)
+    obj[20:44, 40:64] = True
+    flow[obj] = obj_flow
+    flow += np.random.default_rng(0).normal(0, 0.1, flow.shape).astype(np.float32)
+    leak = np.zeros((H, W), bool)
+    leak[20:44, 34:40] = True
+    return flow, obj, leak
+
+
+def test_background_movers_finds_the_leak_and_nothing_when_the_motions_agree():
+    flow, obj, leak = _leak_scene((2.0, 0.5))
+    movers = refine.background_movers(obj | leak, flow)
+    assert movers[leak].mean() > 0.9 and movers[obj].mean() < 0.02
+    flow, obj, leak = _leak_scene((-3.0, 0.0))  # a camera following the object: the flow cannot tell
+    assert refine.background_movers(obj | leak, flow).mean() < 0.01
+    assert not refine.background_movers(np.zeros((64, 96), bool), flow).any()
+
+
+def test_grabcut_drops_uncertain_pixels_of_background_colour():
+    img, disk = _disk_scene()
+    leak = refine._dilate(disk, 12) & ~disk
+    leak[:, : img.shape[1] // 2] = False  # a thick one-sided leak: thicker than the core erosion
+    coarse = disk | leak
+    pts, ids, _ = refine.sample_prompts(disk, 5, seed=0)
+    g = refine.GrabCutRefiner(reference_width=img.shape[1], core_px=4)
+    plain = g(img, coarse, pts, ids)
+    hinted = g(img, coarse, pts, ids, refine.RefineHints(uncertain=leak))
+    iou = lambda m: (m & disk).sum() / (m | disk).sum()  # noqa: E731
+    assert iou(hinted) > 0.95 and iou(hinted) > iou(plain) + 0.05
+
+
 def test_refine_and_track_follows_a_moving_object():
     img0, disk = _disk_scene()
     shift = 4
