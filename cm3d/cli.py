@@ -388,7 +388,23 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: XLA:CPU splits a program's code in parts compiled in parallel; a program stored split and loaded
+#: by another process lost kernels of branches its first runs had not taken ("Function ... not
+#: found": a 120-frame run after a 30-frame one). One part each: no lost kernel, same compile time.
+XLA_CPU_FLAGS = "--xla_cpu_parallel_codegen_split_count=1"
+
+
+def _xla_flags() -> None:
+    """Add :data:`XLA_CPU_FLAGS` to ``$XLA_FLAGS`` before jax starts its backend (unless set there)."""
+    import os
+
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_cpu_parallel_codegen_split_count" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} {XLA_CPU_FLAGS}".strip()
+
+
 def main(argv: list[str] | None = None) -> int:
+    _xla_flags()
     args = build_parser().parse_args(argv)
     t0 = time.perf_counter()
     try:

@@ -3,8 +3,8 @@ configuration and argument shapes is serialised (``jax.experimental.serialize_ex
 cache folder, and a later process loads the executable instead of tracing, lowering and compiling
 it again. The file's key hashes everything that decides the program: its name, the static
 configuration's ``repr``, the arguments' tree structure, shapes and dtypes, the jax and jaxlib
-versions, the backend (platform, version, device kind and count), the x64 flag and the source of
-every ``cm3d`` module; a file whose stored key differs is never loaded (it is compiled afresh and
+versions, the backend (platform, version, device kind and count), the x64 flag, ``$XLA_FLAGS`` and
+the source of every ``cm3d`` module; a file whose stored key differs is never loaded (it is compiled afresh and
 overwritten). Without a folder (:func:`set_cache_dir` ``None``, the library's default) a program is
 compiled in memory once per process, like ``jax.jit``. Host side only: nothing here is traced."""
 
@@ -57,7 +57,8 @@ def environment() -> dict:
     return {"format": FORMAT, "jax": jax.__version__, "jaxlib": jaxlib.__version__,
             "platform": dev.platform, "platform_version": dev.client.platform_version,
             "device_kind": dev.device_kind, "devices": jax.device_count(),
-            "x64": bool(jax.config.jax_enable_x64), "source": source_digest()}
+            "x64": bool(jax.config.jax_enable_x64), "xla_flags": os.environ.get("XLA_FLAGS", ""),
+            "source": source_digest()}
 
 
 def _signature(args) -> tuple[str, list]:
@@ -154,6 +155,16 @@ def compiled(name: str, fn, static: dict, *args):
 def call(name: str, fn, static: dict, *args):
     """``fn(*args, **static)`` through :func:`compiled` (the result of the same program)."""
     return compiled(name, fn, static, *args)[0](*args)
+
+
+def discard(name: str, static: dict, *args) -> None:
+    """Forget program ``name`` for these arguments, in memory and on disk (one that loads but fails
+    to run): the next :func:`compiled` traces and compiles it again, and stores the new one."""
+    key = program_key(name, tuple(sorted(static.items())), args)
+    with _lock:
+        _loaded.pop(key, None)
+        if _state["dir"] is not None:
+            _path(name, key).unlink(missing_ok=True)
 
 
 def clear_memory() -> None:

@@ -17,6 +17,8 @@ os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path(tempfile.gettempdir(
 # directory is part of a program's cache key (JAX's compile options name XLA caches inside it), so
 # one directory for everything is what lets a smoke run reuse the program a test compiled.
 os.environ["CM3D_JAX_CACHE"] = os.environ["JAX_COMPILATION_CACHE_DIR"]
+# The CLI's stored programs (cm3d.programs, default ~/.cache/cm3d/programs): per run too, never the user's.
+os.environ.setdefault("CM3D_PROGRAM_CACHE", str(Path(tempfile.gettempdir()) / f"cm3d-test-programs-{_RUN}"))
 
 # The whole run compiles at LLVM -O0, in-process tests and the scripts they start alike: compilation
 # is most of this suite's CPU time (measured on test_lm + test_pipeline + test_descriptors: 353 s
@@ -26,6 +28,10 @@ os.environ["CM3D_JAX_CACHE"] = os.environ["JAX_COMPILATION_CACHE_DIR"]
 # fast-math, so the numerics do not depend on it; the benchmarks under experiments/ never use it.
 if "--xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
+# The flag cm3d.cli adds for stored programs (cli.XLA_CPU_FLAGS), here too: an in-process cm3d run
+# would add it to the environment of the scripts started after it, and flags are part of XLA's key.
+if "xla_cpu_parallel_codegen_split_count" not in os.environ["XLA_FLAGS"]:
+    os.environ["XLA_FLAGS"] += " --xla_cpu_parallel_codegen_split_count=1"
 
 import jax  # noqa: E402  (after the variable: a jax imported earlier by a plugin gets it here)
 

@@ -225,7 +225,7 @@ def _run_pieces(seq, cfg: PipelineConfig, state, bank, progress):
     device runs piece k (asynchronous dispatch), the host prepares piece k+1. ``state``: the
     previous sequence's (None: a fresh one around ``bank``). Returns (state, NumPy StepOutputs and
     Inputs of the padded sequence)."""
-    outs, hosts = [], []
+    outs, hosts, start = [], [], None
     _prefetch(seq, cfg, state, bank)
     for first, piece in prepare_chunks(seq, cfg, progress=progress):
         piece = _without_hole_features(piece)
@@ -233,10 +233,27 @@ def _run_pieces(seq, cfg: PipelineConfig, state, bank, progress):
             state = initial_state(piece, cfg, bank)
         elif state.window.depth.shape[1:] != piece.frame.depth.shape[1:]:
             state = initial_state(piece, cfg, state.bank)  # another image size: new buffers, same bank
+        start = state if start is None else start
         x = jax.tree.map(jnp.asarray, piece)
         state, out = programs.call("run_frames", run_frames, {"cfg": cfg}, state, x, np.bool_(first == 0))
         outs.append(out)
         hosts.append(piece)
+    try:
+        jax.block_until_ready((state, outs))
+    except jax.errors.JaxRuntimeError as err:
+        # a stored program that this runtime loaded but cannot run (XLA:CPU has lost a kernel of a
+        # branch the first runs never took): forget it and run the sequence again, traced afresh
+        import warnings
+
+        warnings.warn(f"program cache: the stored sequence program failed ({str(err)[:200]}); "
+                      "compiling it afresh", stacklevel=2)
+        state, outs = start, []
+        for k, piece in enumerate(hosts):
+            x = jax.tree.map(jnp.asarray, piece)
+            if k == 0:
+                programs.discard("run_frames", {"cfg": cfg}, state, x, np.bool_(True))
+            state, out = programs.call("run_frames", run_frames, {"cfg": cfg}, state, x, np.bool_(k == 0))
+            outs.append(out)
     stack = lambda parts: jax.tree.map(lambda *a: np.concatenate([np.asarray(p) for p in a]), *parts)  # noqa: E731
     return state, stack(outs), stack(hosts)
 
