@@ -54,19 +54,28 @@ def warp_dissimilarity(gray_t, gray_t2, flow, radius: int):
     return jnp.sqrt(jnp.maximum(box_mean(d * d, radius) - box_mean(d, radius) ** 2, 0.0))
 
 
-def static_rejected(image_t, image_t2, flow, ego, reference, radius: int = 2, k: float = 3.0):
+def static_rejected(image_t, image_t2, flow, ego, reference, radius: int = 2, k: float = 3.0, q: float = 0.0):
     """(H, W) bool: pixels where the image rejects the static hypothesis.
 
     ``excess = e_ego - e_flow``, the ego-flow warp's dissimilarity above the optical-flow warp's
     (:func:`warp_dissimilarity`), exceeds its median over the ``reference`` pixels (presumed
     static: there both warps agree up to matching noise) by ``k`` robust sigmas (1.4826 MAD) of it
-    there. Images (H, W, 3), flows (H, W, 2) frame t -> t2, reference (H, W) bool.
+    there; and, with ``q > 0``, ``e_ego`` itself exceeds the ``q``-quantile of ``e_flow`` over the
+    reference: the static hypothesis matches worse than most correct matches of the pair do (the
+    flow minimises the dissimilarity, so on an ambiguous surface it always beats the ego warp by a
+    little). Images (H, W, 3), flows (H, W, 2) frame t -> t2, reference (H, W) bool.
     """
     g0, g1 = gray(image_t), gray(image_t2)
-    excess = warp_dissimilarity(g0, g1, ego, radius) - warp_dissimilarity(g0, g1, flow, radius)
+    e_ego, e_flow = warp_dissimilarity(g0, g1, ego, radius), warp_dissimilarity(g0, g1, flow, radius)
+    excess = e_ego - e_flow
     med = masked_median_low(excess, reference)
     sigma = robust.MAD_TO_SIGMA * masked_median_low(jnp.abs(excess - med), reference)
-    return excess > med + k * jnp.maximum(sigma, 1e-4)
+    out = excess > med + k * jnp.maximum(sigma, 1e-4)
+    if q > 0:
+        x = jnp.sort(jnp.where(reference, e_flow, jnp.inf).reshape(-1))
+        n = jnp.sum(reference)
+        out &= e_ego > x[jnp.clip(jnp.floor((n - 1) * q).astype(jnp.int32), 0, x.shape[0] - 1)]
+    return out
 
 
 def confirmed_regions(labels, support, min_fraction: float):

@@ -70,7 +70,7 @@ def _rejects_static(prior_t: FramePrior, prior_t2: FramePrior, flow, geo, cfg: M
     """Pixels whose images reject the static hypothesis of the pair (:mod:`cm3d.motion.appearance`)."""
     ego, ok = ego_flow_rel(prior_t.depth, prior_t.intrinsic, prior_t2.intrinsic, geo.rel_pose)
     return static_rejected(prior_t.image, prior_t2.image, flow, ego, geo.valid & ok & ~geo.mask,
-                           cfg.appearance_radius, cfg.appearance_k)
+                           cfg.appearance_radius, cfg.appearance_k, cfg.appearance_q)
 
 
 def sequence_motion_cues(priors: FramePrior, flows, matches, cfg: MotionConfig = MotionConfig()) -> MotionCues:

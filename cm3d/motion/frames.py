@@ -107,6 +107,7 @@ class MotionConfig:
     appearance: bool = True
     appearance_radius: int = 2
     appearance_k: float = 3.0
+    appearance_q: float = 0.9
     appearance_min_fraction: float = 0.3
     # candidate regions
     candidate_source: str = "geo"  # "geo", "union" or "intersection" of the flow and geo masks
