@@ -7,7 +7,7 @@ import jax.numpy as jnp
 
 from cm3d.motion.appearance import confirmed_regions, static_rejected
 from cm3d.motion.frames import FramePrior, MotionConfig, MotionCues, SecondPair
-from cm3d.motion.geometry_cue import baseline_motion_cue, ego_flow_rel, geometry_motion_cue
+from cm3d.motion.geometry_cue import baseline_motion_cue, geometry_motion_cue
 from cm3d.motion.keypoint_cue import (
     candidate_regions, dynamic_keypoints, keypoint_displacements, robust_motion_cue, static_reference
 )
@@ -68,8 +68,7 @@ def motion_cues(prior_t: FramePrior, prior_t2: FramePrior, flow, matches,
 
 def _rejects_static(prior_t: FramePrior, prior_t2: FramePrior, flow, geo, cfg: MotionConfig):
     """Pixels whose images reject the static hypothesis of the pair (:mod:`cm3d.motion.appearance`)."""
-    ego, ok = ego_flow_rel(prior_t.depth, prior_t.intrinsic, prior_t2.intrinsic, geo.rel_pose)
-    return static_rejected(prior_t.image, prior_t2.image, flow, ego, geo.valid & ok & ~geo.mask,
+    return static_rejected(prior_t.image, prior_t2.image, flow, geo.ego, geo.valid & ~geo.mask,
                            cfg.appearance_radius, cfg.appearance_k, cfg.appearance_q)
 
 

@@ -66,7 +66,8 @@ def refine_relative_pose(depth, K0, K1, flow, rel_init, weight, cfg: MotionConfi
 class GeometryCue:
     """The residual-flow cue of one frame pair: mask, residual (H, W) px, valid (H, W), the Otsu
     threshold (px), the flow-refined relative pose (4, 4) camera t -> camera t2 and the occluded
-    pixels (H, W) (forward-backward inconsistent or hidden in t2; never judged)."""
+    pixels (H, W) (forward-backward inconsistent or hidden in t2; never judged), the ego flow (H, W, 2)
+    of the pixel's own depth under that pose."""
 
     mask: jax.Array
     residual: jax.Array
@@ -74,6 +75,7 @@ class GeometryCue:
     threshold: jax.Array
     rel_pose: jax.Array
     occluded: jax.Array
+    ego: jax.Array
 
 
 def geometry_motion_cue(prior_t: FramePrior, prior_t2: FramePrior, flow, cfg: MotionConfig = MotionConfig(),
@@ -119,7 +121,7 @@ def geometry_motion_cue(prior_t: FramePrior, prior_t2: FramePrior, flow, cfg: Mo
         t = threshold_otsu(residual, cfg.otsu_bins, valid)
     thr = jnp.maximum(t, floor)
     return GeometryCue(mask=(residual > thr) & valid, residual=residual, valid=valid, threshold=thr, rel_pose=rel,
-                       occluded=occluded)
+                       occluded=occluded, ego=ego)
 
 
 def baseline_motion_cue(prior_t: FramePrior, prior_t2: FramePrior, flow, rel, cfg: MotionConfig = MotionConfig()):
