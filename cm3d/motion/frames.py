@@ -102,8 +102,8 @@ class MotionConfig:
     two_pairs: bool = True  # with a second partner (t-1), dynamic = moving in every pair that judges it
     # appearance check (cm3d.motion.appearance): a candidate region is kept only where the images
     # reject the static hypothesis (ego-warp patch dissimilarity above the flow warp's by k robust
-    # sigmas of that excess on the presumed-static pixels) on at least min_fraction of its pixels,
-    # in either pair
+    # sigmas of that excess on the presumed-static pixels, and worse than the q-quantile of the
+    # flow warp's there) on at least min_fraction of its pixels, in the pair (t, t+1)
     appearance: bool = True
     appearance_radius: int = 2
     appearance_k: float = 3.0

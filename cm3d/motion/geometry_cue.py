@@ -86,7 +86,8 @@ def geometry_motion_cue(prior_t: FramePrior, prior_t2: FramePrior, flow, cfg: Mo
     (:func:`~cm3d.motion.occlusion.depth_range_residual`; the plain ``|flow - ego_flow|`` inside a
     surface) under the flow-refined relative pose. Judged (``valid``) where depth is positive and
     confident (``depth_conf >= min_depth_conf`` and > 0: a zero confidence is no measurement, e.g.
-    a sensor hole that :func:`cm3d.data.quality.fill_depth_holes` filled), in front of both cameras, inside the image and not occluded: the z-buffer test
+    a sensor hole that :func:`cm3d.data.quality.fill_depth_holes` filled), in front of both
+    cameras, inside the image and not occluded: the z-buffer test
     against t2's depth (``cfg.occlusion``) and, with ``flow_back`` (H, W, 2), t2 -> t, the
     forward-backward check (it always keeps inconsistent pixels out of the pose fit, and out of
     the judgement with ``cfg.fb_occludes``: off by default, as DIS flow is also inconsistent on fast
