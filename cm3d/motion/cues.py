@@ -51,6 +51,8 @@ def motion_cues(prior_t: FramePrior, prior_t2: FramePrior, flow, matches,
         g2 = geometry_motion_cue(prior_t, second.partner, flow2, cfg, jnp.asarray(second.flow_rev, jnp.float32))
         ok2 = jnp.asarray(second.valid, bool)
         geo_mask, valid = combine_pairs(geo_mask, valid, g2.mask & ok2, g2.valid & ok2)
+        if cfg.appearance:
+            support |= _rejects_static(prior_t, second.partner, flow2, g2, cfg) & ok2
     residual, thr, rel = geo.residual, geo.threshold, geo.rel_pose
     candidates, labels = candidate_regions(flow_mask, geo_mask, valid, cfg)
     if cfg.appearance:

@@ -103,7 +103,7 @@ class MotionConfig:
     # appearance check (cm3d.motion.appearance): a candidate region is kept only where the images
     # reject the static hypothesis (ego-warp patch dissimilarity above the flow warp's by k robust
     # sigmas of that excess on the presumed-static pixels, and worse than the q-quantile of the
-    # flow warp's there) on at least min_fraction of its pixels, in the pair (t, t+1)
+    # flow warp's there) on at least min_fraction of its pixels, in either pair
     appearance: bool = True
     appearance_radius: int = 2
     appearance_k: float = 3.0
