@@ -231,7 +231,7 @@ def monst3r_masks(inputs, num_frames: int, shape, cfg) -> np.ndarray:
     import jax
 
     sub = jax.tree.map(lambda a: np.asarray(a)[:num_frames], inputs)
-    m = np.asarray(_monst3r_batch(sub.frame, sub.partner, sub.flow, sub.flow_rev, cfg.motion), bool)
+    m = np.asarray(_monst3r_program()(sub.frame, sub.partner, sub.flow, sub.flow_rev, cfg.motion), bool)
     s = cfg.stride
     H, W = shape
     return np.repeat(np.repeat(m, s, axis=1), s, axis=2)[:, :H, :W]
@@ -242,10 +242,6 @@ def _monst3r_one(prior_t, prior_t2, flow, flow_rev, mcfg):
 
     rel = geometry_motion_cue(prior_t, prior_t2, flow, mcfg, flow_rev).rel_pose
     return baseline_motion_cue(prior_t, prior_t2, flow, rel, mcfg)
-
-
-def _monst3r_batch(frame, partner, flow, flow_rev, mcfg):
-    return _monst3r_program()(frame, partner, flow, flow_rev, mcfg)
 
 
 @functools.cache

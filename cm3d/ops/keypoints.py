@@ -37,12 +37,18 @@ class Matches:
     valid: np.ndarray
 
 
+def _norm(cfg: KeypointConfig):
+    """The descriptor distance of ``cfg``'s detector (OpenCV norm type)."""
+    import cv2
+
+    return cv2.NORM_L2 if cfg.detector == "sift" else cv2.NORM_HAMMING
+
+
 def _detector(cfg: KeypointConfig):
     import cv2
 
-    if cfg.detector == "sift":
-        return cv2.SIFT_create(nfeatures=cfg.max_features), cv2.NORM_L2
-    return cv2.ORB_create(nfeatures=cfg.max_features), cv2.NORM_HAMMING
+    create = cv2.SIFT_create if cfg.detector == "sift" else cv2.ORB_create
+    return create(nfeatures=cfg.max_features), _norm(cfg)
 
 
 def _gray(img):
@@ -68,7 +74,7 @@ def match_detections(det0, det1, cfg: KeypointConfig = KeypointConfig()) -> Matc
     import cv2
 
     (k0, d0), (k1, d1) = det0, det1
-    norm = cv2.NORM_L2 if cfg.detector == "sift" else cv2.NORM_HAMMING
+    norm = _norm(cfg)
     N = cfg.max_matches
     uv0, uv1, valid = np.zeros((N, 2), np.float32), np.zeros((N, 2), np.float32), np.zeros(N, bool)
     if d0 is None or d1 is None or len(k0) == 0 or len(k1) < 2:

@@ -182,10 +182,16 @@ def _without_hole_features(inputs: Inputs) -> Inputs:
 def initial_state(inputs: Inputs, cfg: PipelineConfig, bank: memory.MemoryBank | None = None):
     """:func:`cm3d.pipeline.init_state` for pieces shaped like ``inputs``, as one stored program
     (:mod:`cm3d.programs`) around ``bank`` (None: a new empty bank of ``cfg.memory``)."""
+    bank = empty_bank_host(cfg.memory) if bank is None else bank
+    return programs.call("fresh_state", fresh_state, _state_static(inputs, cfg), bank)
+
+
+def _state_static(inputs, cfg: PipelineConfig) -> dict:
+    """The static arguments of :func:`fresh_state` for pieces shaped like ``inputs`` (arrays or a
+    :func:`piece_spec`): the config and (h, w, features per frame, descriptor length)."""
     h, w = inputs.frame.depth.shape[-2:]
     n, dk = inputs.features.desc.shape[-2:]
-    bank = empty_bank_host(cfg.memory) if bank is None else bank
-    return programs.call("fresh_state", fresh_state, {"cfg": cfg, "shape": (int(h), int(w), int(n), int(dk))}, bank)
+    return {"cfg": cfg, "shape": (int(h), int(w), int(n), int(dk))}
 
 
 def _prefetch(seq, cfg: PipelineConfig, state, bank):
@@ -206,10 +212,8 @@ def _prefetch(seq, cfg: PipelineConfig, state, bank):
     def _load_programs():
         st = state
         if st is None or st.window.depth.shape[1:] != spec.frame.depth.shape[1:]:
-            h, w = spec.frame.depth.shape[-2:]
-            n, dk = spec.features.desc.shape[-2:]
             b = (empty_bank_host(cfg.memory) if bank is None else bank) if st is None else st.bank
-            static = {"cfg": cfg, "shape": (int(h), int(w), int(n), int(dk))}
+            static = _state_static(spec, cfg)
             programs.compiled("fresh_state", fresh_state, static, b)
             st = jax.eval_shape(functools.partial(fresh_state, **static), b)
         st = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type), st)
