@@ -3,7 +3,7 @@ and memory recall on real revisits, with VGGT-like priors made from the ground t
 
     .venv/bin/python experiments/real_kitchen.py [--data DIR] [--segments 160,640,...]
                                                  [--frames 30] [--resize 1.0] [--level moderate]
-                                                 [--quick] [--json PATH]
+                                                 [--all-pairs] [--quick] [--json PATH]
 
 The folder (default ``../shared/data/sevenscenes_redkitchen``, or under ``$CM3D_SHARED_DATA``) is read with
 :func:`cm3d.data.sevenscenes.load_sevenscenes`. A *segment* is ``--frames`` (30) consecutive
@@ -36,12 +36,20 @@ accepted window: its Sim(3) (B's prior frame -> A's) against the true one, rotat
 translation of B's first camera after undoing A's known scale (m), scale error (%). True overlap:
 the fraction of B's ground-truth points within 5 cm of A's.
 
+``--all-pairs`` (issue 22's bars) also runs every pair (A, B) of the run's segments with B at least one
+segment after A: each *window* of B accepted with A's map counts, on the pairs with >= 30 % true
+overlap (recall) and those under 10 % (false recalls); relocalisation medians over the recalled
+windows.
+
 JSON keys: ate_prior, ate_cm3d, rpe_trans_prior, rpe_trans_cm3d, map_acc_median_prior,
 map_acc_median_cm3d, map_comp_median_prior, map_comp_median_cm3d, false_dynamic_frac,
 false_dynamic_frac_monst3r, false_dynamic_frac_untuned (without the ``TUNED_ON`` segments) (means over
 segments), revisits_recalled, revisits_total, false_recalls, distinct_total, reloc_rot_deg_median,
 reloc_trans_m_median, reloc_scale_err_pct_median (null when nothing was recalled), segments,
-seconds_per_segment; one ``overlap_A_B`` per pair.
+seconds_per_segment; one ``overlap_A_B`` per pair; with ``--all-pairs``: window_recall_frac_overlap30,
+windows_overlap30, pairs_overlap30, pairs_overlap30_recalled, false_recalls_overlap10, pairs_overlap10,
+window_reloc_rot_deg_median, window_reloc_trans_m_median, window_reloc_scale_err_pct_median,
+window_reloc_abs_scale_err_pct_median.
 """
 
 from __future__ import annotations
@@ -180,6 +188,9 @@ def main() -> None:
     ap.add_argument("--resize", type=float, default=1.0, help="image scale (0.5: 320x240)")
     ap.add_argument("--level", default="moderate", choices=list(priors.NOISE_LEVELS))
     ap.add_argument("--quick", action="store_true", help="8-frame segments at 64x48, 1 revisit + 1 distinct pair")
+    ap.add_argument("--all-pairs", action="store_true",
+                    help="also every pair of segments at least one segment apart: window recall at >= 30 %% "
+                         "overlap, false recalls under 10 %%")
     ap.add_argument("--json", default=None, metavar="PATH")
     args = ap.parse_args()
     folder = Path(args.data)
@@ -263,40 +274,95 @@ def main() -> None:
             print(f"{a:5d} " + " ".join(f"{100 * overlap(clouds[a], clouds[b]):5.0f}" for b in sorted(clouds)))
 
     print("\nmemory: B runs with the bank A's run left (reloc error of an accepted window vs the true Sim(3))\n")
-    head = f"{'pair':>11s} {'kind':>8s} {'overlap':>7s} {'recalled':>8s} {'top cand.':>9s} {'kp inl.':>7s} " \
-           f"{'rot °':>6s} {'trans m':>7s} {'scale %':>7s}"
+    head = f"{'pair':>11s} {'kind':>8s} {'overlap':>7s} {'recalled':>8s} {'windows':>7s} {'top cand.':>9s} " \
+           f"{'kp inl.':>7s} {'rot °':>6s} {'trans m':>7s} {'scale %':>7s}"
     print(head)
     print("-" * len(head))
+    memo = {}
+
+    def pair_run(a, b):
+        """B's windows with the bank A's run left: (overlap, [(window, accepted with A's map)], best window)."""
+        if (a, b) not in memo:
+            maps_a = {w.map_id for w in results[a].windows if w.created_map}
+            _, res_b, *_ = run_segment(seqs[b], cfg, banks[a])
+            wins = [(w, bool(w.accepted and w.recalled_map in maps_a)) for w in res_b.windows]
+            best = max(res_b.windows, key=lambda w: max(w.keypoint_inliers or [0]))
+            top = "A" if best.candidates and best.candidates[0] in maps_a else "-"
+            memo[(a, b)] = (overlap(clouds[a], clouds[b]), wins, best, top)
+        return memo[(a, b)]
+
+    def window_errors(a, b, wins):
+        return [reloc_error(np.asarray(w.transform), true_sim3(seqs[a], seqs[b]), seqs[a].meta["prior_scale"])
+                for w, ok in wins if ok]
+
+    def show(a, b, kind):
+        ov, wins, best, top = pair_run(a, b)
+        errs = window_errors(a, b, wins)
+        e = errs[0] if errs else {"rot_deg": float("nan"), "trans_m": float("nan"), "scale_err_pct": float("nan")}
+        n_ok = sum(ok for _, ok in wins)
+        print(f"{a:4d}/{b:<4d}  {kind:>8s} {100 * ov:6.1f}% {('yes' if n_ok else 'no'):>8s} {n_ok:3d}/{len(wins):<3d} "
+              f"{top:>9s} {max(best.keypoint_inliers or [0]):7d} {e['rot_deg']:6.2f} {e['trans_m']:7.3f} "
+              f"{e['scale_err_pct']:7.2f}")
+        return ov, wins, errs
+
     recalled, false_recalls, reloc = 0, 0, []
     for kind, pairs in (("revisit", revisits), ("distinct", distinct)):
         for a, b in pairs:
-            ov = overlap(clouds[a], clouds[b])
+            ov, wins, errs = show(a, b, kind)
             figures[f"overlap_{a}_{b}"] = ov
-            maps_a = {w.map_id for w in results[a].windows if w.created_map}
-            _, res_b, *_ = run_segment(seqs[b], cfg, banks[a])
-            acc = [w for w in res_b.windows if w.accepted and w.recalled_map in maps_a]
-            best = max(res_b.windows, key=lambda w: max(w.keypoint_inliers or [0]))
-            top = "A" if best.candidates and best.candidates[0] in maps_a else "-"
-            err = None
-            if acc:
-                err = reloc_error(np.asarray(acc[0].transform), true_sim3(seqs[a], seqs[b]),
-                                  seqs[a].meta["prior_scale"])
             if kind == "revisit":
-                recalled += bool(acc)
-                if err is not None:
-                    reloc.append(err)
+                recalled += any(ok for _, ok in wins)
+                reloc += errs[:1]
             else:
-                false_recalls += bool(acc)
-            e = err or {"rot_deg": float("nan"), "trans_m": float("nan"), "scale_err_pct": float("nan")}
-            print(f"{a:4d}/{b:<4d}  {kind:>8s} {100 * ov:6.1f}% {('yes' if acc else 'no'):>8s} {top:>9s} "
-                  f"{max(best.keypoint_inliers or [0]):7d} {e['rot_deg']:6.2f} {e['trans_m']:7.3f} "
-                  f"{e['scale_err_pct']:7.2f}")
-    med = lambda k: float(np.median([r[k] for r in reloc])) if reloc else None  # noqa: E731
+                false_recalls += any(ok for _, ok in wins)
+    med = lambda rows, k: float(np.median([r[k] for r in rows])) if rows else None  # noqa: E731
     figures |= {"revisits_recalled": recalled, "revisits_total": len(revisits), "false_recalls": false_recalls,
-                "distinct_total": len(distinct), "reloc_rot_deg_median": med("rot_deg"),
-                "reloc_trans_m_median": med("trans_m"), "reloc_scale_err_pct_median": med("scale_err_pct")}
-    print(f"\nrevisits recalled {recalled}/{len(revisits)}, false recalls {false_recalls}/{len(distinct)}; "
-          f"wall {time.perf_counter() - t_start:.0f} s")
+                "distinct_total": len(distinct), "reloc_rot_deg_median": med(reloc, "rot_deg"),
+                "reloc_trans_m_median": med(reloc, "trans_m"), "reloc_scale_err_pct_median": med(reloc, "scale_err_pct")}
+    print(f"\nrevisits recalled {recalled}/{len(revisits)}, false recalls {false_recalls}/{len(distinct)}")
+
+    if args.all_pairs:
+        # every pair (A, B) of the run's segments with B at least one segment after A (not B continuing A's
+        # path): windows of pairs with >= 30 % true overlap should recall A's map, none of a pair under 10 %
+        segs = sorted(s for s in starts if s in results)
+        pos = {s: all_starts.index(s) for s in segs}
+        pairs = [(a, b) for a in segs for b in segs if pos[b] >= pos[a] + 2]
+        print(f"\nall {len(pairs)} pairs of segments at least one segment apart (windows: accepted with A's map / "
+              f"windows of B)\n")
+        print(head)
+        print("-" * len(head))
+        win_ok = win_n = 0
+        errs_all, false_pairs, low_pairs, high_pairs, high_recalled = [], 0, 0, 0, 0
+        for a, b in pairs:
+            ov = overlap(clouds[a], clouds[b])
+            kind = "revisit" if ov >= 0.3 else ("distinct" if ov < 0.1 else "partial")
+            ov, wins, errs = show(a, b, kind)
+            if kind == "revisit":
+                high_pairs += 1
+                high_recalled += any(ok for _, ok in wins)
+                win_ok += sum(ok for _, ok in wins)
+                win_n += len(wins)
+                errs_all += errs
+            elif kind == "distinct":
+                low_pairs += 1
+                false_pairs += any(ok for _, ok in wins)
+        figures |= {"window_recall_frac_overlap30": win_ok / win_n if win_n else None, "windows_overlap30": win_n,
+                    "pairs_overlap30": high_pairs, "pairs_overlap30_recalled": high_recalled,
+                    "false_recalls_overlap10": false_pairs, "pairs_overlap10": low_pairs,
+                    "window_reloc_rot_deg_median": med(errs_all, "rot_deg"),
+                    "window_reloc_trans_m_median": med(errs_all, "trans_m"),
+                    "window_reloc_scale_err_pct_median": med(errs_all, "scale_err_pct")}
+        if win_n:
+            print(f"\nwindows of the {high_pairs} pairs with >= 30 % overlap recalled: {win_ok}/{win_n} "
+                  f"({100 * win_ok / win_n:.1f} %; pairs {high_recalled}/{high_pairs}); false recalls on the "
+                  f"{low_pairs} pairs under 10 %: {false_pairs}")
+        if errs_all:
+            print(f"relocalisation of the recalled windows, median: {med(errs_all, 'rot_deg'):.2f}° / "
+                  f"{med(errs_all, 'trans_m'):.3f} m / {med(errs_all, 'scale_err_pct'):+.2f} % scale "
+                  f"(|scale| {float(np.median([abs(r['scale_err_pct']) for r in errs_all])):.2f} %)")
+            figures["window_reloc_abs_scale_err_pct_median"] = float(np.median([abs(r["scale_err_pct"])
+                                                                               for r in errs_all]))
+    print(f"wall {time.perf_counter() - t_start:.0f} s")
     if args.json:
         write_json(args.json, figures)
 
