@@ -87,9 +87,10 @@ from cm3d.ops import descriptors, keypoints
 from cm3d.outputs import write_json
 
 WORLD = synthetic.WorldConfig(height=120, width=160, supersample=1, fps=1.0)
-CFG = memory.MemoryConfig(max_maps=200, max_points=4096, max_keyframes=16, max_keypoints=1024,
-                          max_floor_keypoints=512, voxel_resolution=40.0, pixel_stride=4, top_k=2, icp_points=256,
-                          cluster_separation=1.5)
+# the product configuration (cm3d run's, the demo's: memory.MemoryConfig's defaults) with this bank's
+# capacities only: 200 maps, 1024 RootSIFT + 512 floor keypoints per map (issue 22)
+CFG = memory.with_capacities(max_maps=200, max_points=4096, max_keyframes=16, max_keypoints=1024,
+                             max_floor_keypoints=512)
 QUERY_KEYPOINTS = 256  # image keypoints of a query (a map: CFG.max_keypoints)
 QUERY_FLOOR_KEYPOINTS = 128  # floor keypoints of a query (a map: CFG.max_floor_keypoints)
 # the previous configuration (stop 16), an ablation row: no floor keypoints, its cluster separation and ICP points

@@ -78,12 +78,12 @@ def test_recall_votes_for_the_map_with_similar_keyframes():
     r = jax.jit(memory.recall, static_argnums=4)(bank, q, np.array([True, True, False]),
                                                  bank.cloud_desc[1], CFG)
     assert int(r.candidates[0]) == 1 and float(r.votes[1]) == 2.0
-    assert list(np.asarray(r.candidates[1:])) == [-1, -1]  # no votes: never a candidate
+    assert list(np.asarray(r.candidates[1:])) == [-1] * (CFG.top_k - 1)  # no votes: never a candidate
     # an unrelated query recalls nothing
     u = rng.normal(size=(3, CFG.image_dim)).astype(np.float32)
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     r = memory.recall(bank, u, np.ones(3, bool), bank.cloud_desc[0], CFG)
-    assert list(np.asarray(r.candidates)) == [-1, -1, -1]
+    assert list(np.asarray(r.candidates)) == [-1] * CFG.top_k
 
 
 def test_recall_vmaps_over_queries():

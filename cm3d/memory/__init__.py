@@ -31,11 +31,13 @@ from cm3d.memory.bank import (
 )
 from cm3d.memory.config import (
     ACCEPTANCE_FEATURES,
+    CAPACITY_FIELDS,
     DESCRIPTOR_3D_DIMS,
     MemoryConfig,
     MemoryFileError,
     MemoryFullError,
     config_from_dict,
+    with_capacities,
 )
 from cm3d.memory.entry import (
     Keypoints,
@@ -59,12 +61,12 @@ from cm3d.memory.update import Report, merge_evenly, relocalize, remember, updat
 from cm3d.memory.verify import Verification, even_subsample, verify
 
 __all__ = [
-    "ACCEPTANCE_FEATURES", "CommitReport", "DESCRIPTOR_3D_DIMS", "FORMAT_VERSION", "GRID_CELL", "MAGIC", "READ_VERSIONS",
+    "ACCEPTANCE_FEATURES", "CAPACITY_FIELDS", "CommitReport", "DESCRIPTOR_3D_DIMS", "FORMAT_VERSION", "GRID_CELL", "MAGIC", "READ_VERSIONS",
     "Identification", "Keypoints", "MapCloud", "MapWrite", "MapEntry", "MemoryBank", "MemoryConfig", "MemoryFileError",
     "MemoryFullError", "Recall", "Report", "SequenceCloud", "Snapshot", "StoredBank", "Verification", "acceptance_features",
     "acceptance_score", "add_map", "build_entry", "capacities", "check_bank_path", "commit", "cloud_descriptor", "config_from_dict",
     "downsample_to_capacity", "empty", "even_subsample", "evenly_spread", "fit_keypoints", "global_table",
     "identify", "insert_map", "keypoint_clusters", "lift_keypoints", "load", "map_cloud", "map_counts", "match_keypoints",
     "merge_banks", "merge_evenly", "modify", "read", "model_accepts", "recall", "relocalize", "remember", "remove_map", "save",
-    "select_keyframes", "sequence_cloud", "snapshot", "stored_entry", "up_axis", "update_map", "verify", "without_map",
+    "select_keyframes", "sequence_cloud", "snapshot", "stored_entry", "up_axis", "update_map", "verify", "with_capacities", "without_map",
 ]

@@ -1,16 +1,68 @@
-"""The acceptance model: the verified candidate's weak signals as one feature vector
-(:data:`~cm3d.memory.config.ACCEPTANCE_FEATURES`) and their linear score (a logistic regression
-fitted on the tuning split of ``experiments/memory_recall.py``)."""
+"""The acceptance tests of the verified candidate:
+
+* the **chance test** (:func:`chance_test`, an a-contrario bound that means the same on any data):
+  the recovered pose's keypoint inliers against the count expected by chance at that match count,
+  measured on the query's own matches with their map ends shuffled; accept when the number of
+  false alarms (tests x Poisson tail) is below ``10 ** cfg.max_log_nfa``;
+* the **acceptance model**: the candidate's weak signals as one feature vector
+  (:data:`~cm3d.memory.config.ACCEPTANCE_FEATURES`) and their linear score (a logistic regression
+  fitted on the tuning split of ``experiments/memory_recall.py``)."""
 
 from __future__ import annotations
 
 import jax.numpy as jnp
+from jax.scipy.special import gammainc
 
 from cm3d.memory.bank import MemoryBank
 from cm3d.memory.config import MemoryConfig
 from cm3d.memory.entry import MapEntry
 from cm3d.memory.recall import Recall
 from cm3d.memory.verify import Verification
+from cm3d.ops import sim3
+
+SHUFFLES = 8  # cyclic shifts of the matches' map ends that measure the chance inlier count
+MINIMAL_SAMPLE = 3  # matches a hypothesis fits exactly (inliers by construction, not evidence)
+
+
+def chance_test(src, dst, valid, T, threshold, tests, shuffles: int = SHUFFLES):
+    """The a-contrario test of a pose ``T`` (4, 4) fitted to the matches ``src[i] -> dst[i]`` (N, 3)
+    (where ``valid``): (inliers k within ``threshold``, chance inliers λ, log10 NFA).
+
+    λ is the inlier count of the same pose on the same matches with their map ends shuffled (``shuffles``
+    cyclic shifts among the valid matches; their mean, plus half an inlier so that a clean background
+    is not taken for an impossible one): what chance gives at this match count, this map's keypoint
+    density and this threshold. ``NFA = tests · P(Poisson(λ) >= k - 3)`` (3: the minimal sample, inliers
+    of any hypothesis; ``tests``: the hypotheses tried). NFA < 1 (log10 < 0): fewer than one pose this
+    good expected by chance among all tried. Pure, fixed shape."""
+    src, dst = jnp.asarray(src, jnp.float32), jnp.asarray(dst, jnp.float32)
+    valid = jnp.asarray(valid, bool)
+    order = jnp.argsort(~valid, stable=True)
+    src, dst, valid = src[order], dst[order], valid[order]
+    n = jnp.sum(valid)
+    T = jnp.asarray(T, jnp.float32)
+    pred = sim3.apply(T, src)
+    thr2 = jnp.float32(threshold) ** 2
+    k = jnp.sum(valid & (jnp.sum((pred - dst) ** 2, -1) < thr2))
+    i = jnp.arange(src.shape[0])
+    nn = jnp.maximum(n, 1)
+
+    def shifted(j):
+        off = 1 + (j * jnp.maximum(n - 1, 0)) // shuffles  # in [1, n - 1]: no match keeps its own end
+        d = dst[(i + off) % nn]
+        return jnp.sum(valid & (jnp.sum((pred - d) ** 2, -1) < thr2))
+
+    chance = sum(shifted(j) for j in range(shuffles))
+    lam = (chance.astype(jnp.float32) + 0.5) / shuffles
+    excess = jnp.maximum(k - MINIMAL_SAMPLE, 0).astype(jnp.float32)
+    tail = jnp.where(excess > 0, gammainc(jnp.maximum(excess, 1.0), lam), 1.0)  # P(Poisson(lam) >= excess)
+    log_nfa = jnp.log10(jnp.float32(tests)) + jnp.log10(jnp.maximum(tail, 1e-30))
+    ok = jnp.all(jnp.isfinite(T))
+    return k.astype(jnp.int32), lam, jnp.where(ok, log_nfa, jnp.float32(jnp.log10(tests)))
+
+
+def chance_tests(cfg: MemoryConfig) -> int:
+    """Poses tried per query: every candidate's triangle and upright-pair hypotheses."""
+    return cfg.top_k * (cfg.ransac_hypotheses + cfg.upright_hypotheses)
 
 
 def acceptance_features(bank: MemoryBank, entry: MapEntry, r: Recall, candidate_inliers, b, inliers, screen,
@@ -54,8 +106,12 @@ def acceptance_score(features, cfg: MemoryConfig):
     return jnp.sum(w * (features - mu) / sd) + jnp.float32(cfg.accept_bias)
 
 
-def model_accepts(bank, m, v: Verification, score, cfg: MemoryConfig):
-    """The acceptance model's decision: score >= 0 and the hard checks (a stored map, a finite transform,
-    a scale in ``cfg.scale_range``)."""
-    return ((m >= 0) & bank.map_valid[jnp.maximum(m, 0)] & (score >= 0) & jnp.all(jnp.isfinite(v.transform))
+def hard_checks(bank, m, v: Verification, cfg: MemoryConfig):
+    """A stored map, a finite transform, a scale in ``cfg.scale_range``."""
+    return ((m >= 0) & bank.map_valid[jnp.maximum(m, 0)] & jnp.all(jnp.isfinite(v.transform))
             & (v.scale >= cfg.scale_range[0]) & (v.scale <= cfg.scale_range[1]))
+
+
+def model_accepts(bank, m, v: Verification, score, cfg: MemoryConfig):
+    """The acceptance model's decision: score >= 0 and the :func:`hard_checks`."""
+    return hard_checks(bank, m, v, cfg) & (score >= 0)

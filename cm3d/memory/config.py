@@ -32,6 +32,11 @@ ACCEPTANCE_FEATURES = (
 
 
 
+# the fields a user of the product configuration may change (sizes of the bank's arrays); every other
+# field keeps the product's value everywhere (pipeline, demo, paper tables, the memory benchmark)
+CAPACITY_FIELDS = ("max_maps", "max_points", "max_keyframes", "max_keypoints", "max_floor_keypoints")
+
+
 class MemoryFullError(RuntimeError):
     """The bank has no free map slot (capacity policy: refuse, never evict silently)."""
 
@@ -44,6 +49,11 @@ class MemoryFileError(ValueError):
 @dataclasses.dataclass(frozen=True)
 class MemoryConfig:
     """Capacities (static, shape-affecting) and recall / verification settings of the memory bank.
+
+    **One configuration** (issue 22): the defaults are the product's. ``cm3d run`` / ``cm3d demo``
+    (:class:`cm3d.pipeline.PipelineConfig`), the paper-table scripts and
+    ``experiments/memory_recall.py`` differ only in capacities (:data:`CAPACITY_FIELDS`; see
+    :func:`with_capacities`), so the benchmark's figure is the product's at its bank size.
 
     Field groups: capacities (``max_*``, dimensions), 2D recall (``hash_*``, ``match_radius``, ``top_k``,
     ``w_cloud``), entries (voxels, confidence, stride, normals), keypoint RANSAC (``ratio`` ...
@@ -71,17 +81,17 @@ class MemoryConfig:
     hash_seed: int = 0
     hash_radius: int = 22  # a table row is a candidate when its code is this close (Hamming)
     match_radius: float = 0.45  # ... and its exact L2 distance to the query is below this
-    top_k: int = 3  # candidate maps passed on to verification
+    top_k: int = 2  # candidate maps passed on to verification
     w_cloud: float = 0.5  # weight of the 3D-descriptor similarity when re-ranking
     # entries (static points of a sequence)
-    voxel_resolution: float = 60.0  # map voxel = largest extent / this (grown while over capacity)
+    voxel_resolution: float = 40.0  # map voxel = largest extent / this (grown while over capacity)
     min_conf_quantile: float = 0.3  # static points: confidence above this quantile of the sequence
     pixel_stride: int = 4  # static points: every stride-th pixel
     normal_radius: float = 0.2  # neighbourhood cell for map normals (map units: VGGT-normalised)
     # keypoint matching and Sim(3) RANSAC
     ratio: float = 0.85  # keypoint matching: Lowe ratio against the best match elsewhere in 3D
     loose_descriptor: float = 0.6  # RANSAC scoring also counts mutual matches (no ratio test) below this L2
-    cluster_separation: float = 2.0  # query keypoints closer than this (query voxels) are one 3D point
+    cluster_separation: float = 1.5  # query keypoints closer than this (query voxels) are one 3D point
     ransac_hypotheses: int = 256  # Sim(3) RANSAC: 3-point hypotheses per candidate
     upright_hypotheses: int = 128  # + 2-point hypotheses with both frames' up axes known (0: off; see upright_pairs)
     up_prior: tuple[float, float, float] = (0.0, -1.0, 0.0)  # a camera's rough up (OpenCV: -y) in its own frame
@@ -102,6 +112,11 @@ class MemoryConfig:
     min_fitness: float = 0.15  # verification: share of the query's ICP points with a map point nearby
     max_rmse: float = 0.775  # verification: ICP inlier RMSE, in map voxels
     min_colour_agreement: float = 0.725  # verification: share of colour-consistent ICP inliers
+    # the chance test (cm3d.memory.acceptance.chance_test): accept only when fewer than 10 ** max_log_nfa
+    # poses as good as the recovered one are expected by chance among all tried (0: one). Default inf:
+    # reported (recall.json), not a gate: at 0 it rejected right revisits with few keypoints (benchmark
+    # 98 -> 95 % at 200 maps; the demo's visit 1 window 0: 8 inliers vs 1.31 by chance, log10 NFA +0.9)
+    max_log_nfa: float = float("inf")
     # acceptance model
     accept_weights: tuple[float, ...] = (0.30509, 0, 0, 0.53475, 0.63843, 0.52652, 0.57809, 0.37127, 0.30781, 0,
                                          -0.23286, -0.19504, 0.62967, 0, 0)
@@ -145,6 +160,16 @@ class MemoryConfig:
             if not all(x > 0 for x in self.accept_scale):
                 raise ValueError(f"MemoryConfig.accept_scale: need positive numbers, got {self.accept_scale}")
 
+
+
+def with_capacities(**capacities) -> MemoryConfig:
+    """The product configuration (:class:`MemoryConfig`'s defaults) with other capacities
+    (:data:`CAPACITY_FIELDS` only: anything else raises, so no caller drifts from the product)."""
+    other = sorted(set(capacities) - set(CAPACITY_FIELDS))
+    if other:
+        raise ValueError(f"with_capacities: {', '.join(other)} are not capacities ({', '.join(CAPACITY_FIELDS)}); "
+                         "the product's recall and verification settings are shared by every caller")
+    return MemoryConfig(**capacities)
 
 
 def config_from_dict(fields: dict) -> MemoryConfig:

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from cm3d.memory.acceptance import acceptance_features, acceptance_score, model_accepts
+from cm3d.memory.acceptance import acceptance_features, acceptance_score, chance_test, chance_tests, model_accepts
 from cm3d.memory.bank import MemoryBank
 from cm3d.memory.config import MemoryConfig
 from cm3d.memory.entry import MapEntry
@@ -28,6 +28,9 @@ class Identification:
     candidate: jax.Array | None = None  # () the verified candidate (-1: none), accepted or not
     features: jax.Array | None = None  # (len(ACCEPTANCE_FEATURES),) its scores (acceptance_features)
     acceptance: jax.Array | None = None  # () the acceptance model's score (None without cfg.accept_weights)
+    pose_inliers: jax.Array | None = None  # () scored keypoint matches within the RANSAC distance of the final pose
+    chance_inliers: jax.Array | None = None  # () ... expected by chance (shuffled matches; chance_test)
+    log_nfa: jax.Array | None = None  # () log10 of the chance test's number of false alarms (accept < max_log_nfa)
 
 
 def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Identification:
@@ -39,7 +42,9 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
     and verified by ICP (:func:`verify`, per ``cfg.verification``); with ``cfg.accept_weights`` (the
     default) and ``"full"`` verification the acceptance model decides instead of the thresholds:
     :func:`acceptance_score` of :func:`acceptance_features` >= 0, plus the hard checks (a stored map, a
-    finite transform, a scale in ``cfg.scale_range``).
+    finite transform, a scale in ``cfg.scale_range``). Every accepted candidate also passes the
+    **chance test** (:func:`chance_test`: the final pose's keypoint inliers against the count its
+    shuffled matches give, log10 NFA below ``cfg.max_log_nfa``), with keypoint verification or more.
     """
     r = recall(bank, entry.kf_desc, entry.kf_valid, entry.cloud_desc, cfg)
     cand = r.candidates
@@ -49,7 +54,7 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
                               map_id=jnp.where(v.accepted, cand[0], -1))
     qk, qf, cluster, frame, sep = query_keypoints(entry, cfg)
     keys = jax.random.split(key, cfg.top_k)
-    Ts, scales, matches, inliers = jax.vmap(
+    Ts, scales, matches, inliers, scored = jax.vmap(
         lambda m, k: keypoint_poses(bank, jnp.maximum(m, 0), qk, qf, cluster, frame, sep, cfg, k))(cand, keys)
     best = jnp.where(cand >= 0, jnp.max(inliers, 1), -1)
     b = jnp.argmax(best)
@@ -60,5 +65,10 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
     if cfg.accept_weights and cfg.verification == "full":
         score = acceptance_score(feats, cfg)
         v = v.replace(accepted=model_accepts(bank, m, v, score, cfg))
+    # the chance test (3D feature stage, under the final pose): an a-contrario bound on the keypoint inliers
+    thr = cfg.ransac_distance * jnp.maximum(bank.voxel_size[jnp.maximum(m, 0)], 1e-12)
+    k, lam, log_nfa = chance_test(scored[0][b], scored[1][b], scored[2][b], v.transform, thr, chance_tests(cfg))
+    v = v.replace(accepted=v.accepted & (log_nfa < cfg.max_log_nfa))
     return Identification(recall=r, candidate_inliers=best, verification=v, map_id=jnp.where(v.accepted, m, -1),
-                          candidate=m, features=feats, acceptance=score)
+                          candidate=m, features=feats, acceptance=score, pose_inliers=k, chance_inliers=lam,
+                          log_nfa=log_nfa)

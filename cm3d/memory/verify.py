@@ -63,7 +63,9 @@ def query_keypoints(entry: MapEntry, cfg: MemoryConfig):
 def keypoint_poses(bank: MemoryBank, m, query: Keypoints, floor: Keypoints | None, cluster, frame_q, sep_q,
                     cfg: MemoryConfig, key):
     """Match the query's keypoints with map ``m``'s and fit Sim(3) by RANSAC: (T (G, 4, 4), scale
-    (G,), strict matches, distinct inliers (G,)), one pose per hypothesis generator (G = 1, or 2 with
+    (G,), strict matches, distinct inliers (G,), the scored matches (src (S, 3), dst (S, 3), valid (S,):
+    one per query keypoint cluster, what :func:`cm3d.memory.acceptance.chance_test` shuffles)), one
+    pose per hypothesis generator (G = 1, or 2 with
     ``cfg.upright_hypotheses``: the triangle RANSAC's, then the upright pairs'). Triangle hypotheses
     come from the strict matches (mutual + ratio test); they are scored on the strict and the loose
     matches (mutual, descriptor distance below ``cfg.loose_descriptor``, no ratio test), one per
@@ -103,7 +105,7 @@ def keypoint_poses(bank: MemoryBank, m, query: Keypoints, floor: Keypoints | Non
     # one scored match per query cluster: inliers are distinct 3D points, and a plain count counts them
     Ts, scales, inls = zip(*(sim3_consensus(*scored[:2], h, scored[2], thr, cfg.scale_range) for h in gens))
     inls = jnp.sum(jnp.stack(inls), -1)
-    return jnp.stack(Ts), jnp.stack(scales), jnp.sum(strict).astype(jnp.int32), inls.astype(jnp.int32)
+    return jnp.stack(Ts), jnp.stack(scales), jnp.sum(strict).astype(jnp.int32), inls.astype(jnp.int32), scored
 
 
 def screen_poses(bank: MemoryBank, m, entry: MapEntry, Ts, cfg: MemoryConfig):
@@ -195,5 +197,5 @@ def verify(bank: MemoryBank, map_id, entry: MapEntry, cfg: MemoryConfig, key) ->
     the 2D recall's scores, which a single-map check does not have).
     """
     m = jnp.maximum(map_id, 0)
-    Ts, scales, matches, inliers = keypoint_poses(bank, m, *query_keypoints(entry, cfg), cfg, key)
+    Ts, scales, matches, inliers, _ = keypoint_poses(bank, m, *query_keypoints(entry, cfg), cfg, key)
     return refine_pose(bank, jnp.where(map_id >= 0, m, -1), entry, Ts, scales, matches, inliers, cfg)[0]

@@ -23,7 +23,9 @@ class RecallReport:
     """One window's memory decision: the recall's candidates (top_k,) (-1 none) with votes, scores
     and keypoint inliers; the verification (accepted, recalled map, inliers, RMSE, fitness, scale,
     its Sim(3) ``transform`` query -> map); the map written (-1 bank full), created; ``placement``:
-    the Sim(3) sequence -> map the memory priors and the merge used."""
+    the Sim(3) sequence -> map the memory priors and the merge used; the acceptance tests of the
+    verified candidate: the model's ``acceptance`` score (accept >= 0; NaN without a model), the chance
+    test's ``pose_inliers`` / ``chance_inliers`` and ``log_nfa`` (accept < ``max_log_nfa``)."""
 
     candidates: Any
     votes: Any
@@ -39,6 +41,10 @@ class RecallReport:
     map_id: Any
     created: Any
     placement: Any = None
+    acceptance: Any = None
+    pose_inliers: Any = None
+    chance_inliers: Any = None
+    log_nfa: Any = None
 
     @classmethod
     def empty(cls, top_k: int) -> "RecallReport":
@@ -48,7 +54,9 @@ class RecallReport:
                    inlier_count=jnp.zeros((), jnp.int32), inlier_rmse=jnp.zeros(()), fitness=jnp.zeros(()),
                    scale=jnp.ones(()), transform=jnp.eye(4, dtype=jnp.float32),
                    map_id=-jnp.ones((), jnp.int32), created=jnp.zeros((), bool),
-                   placement=jnp.eye(4, dtype=jnp.float32))
+                   placement=jnp.eye(4, dtype=jnp.float32), acceptance=jnp.full((), jnp.nan, jnp.float32),
+                   pose_inliers=jnp.zeros((), jnp.int32), chance_inliers=jnp.zeros((), jnp.float32),
+                   log_nfa=jnp.zeros((), jnp.float32))
 
 
 @struct.dataclass
@@ -98,7 +106,12 @@ def recall_report(ident: memory.Identification, map_id, transform, created, plac
         inlier_count=ver.inlier_count.astype(jnp.int32), inlier_rmse=ver.inlier_rmse.astype(jnp.float32),
         fitness=ver.fitness.astype(jnp.float32), scale=ver.scale.astype(jnp.float32),
         transform=jnp.asarray(transform, jnp.float32), map_id=jnp.asarray(map_id, jnp.int32),
-        created=jnp.asarray(created, bool), placement=jnp.asarray(placement, jnp.float32))
+        created=jnp.asarray(created, bool), placement=jnp.asarray(placement, jnp.float32),
+        acceptance=(jnp.full((), jnp.nan, jnp.float32) if ident.acceptance is None
+                    else jnp.asarray(ident.acceptance, jnp.float32)),
+        pose_inliers=jnp.asarray(0 if ident.pose_inliers is None else ident.pose_inliers, jnp.int32),
+        chance_inliers=jnp.asarray(0.0 if ident.chance_inliers is None else ident.chance_inliers, jnp.float32),
+        log_nfa=jnp.asarray(0.0 if ident.log_nfa is None else ident.log_nfa, jnp.float32))
 
 
 def memory_surface(bank: memory.MemoryBank, map_id, transform, d_scene) -> trajectory.MemorySurface:

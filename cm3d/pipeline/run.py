@@ -65,6 +65,11 @@ class WindowRecord:
     lm_iterations: int
     lm_cost: float = float("nan")
     chunk: int | None = None
+    acceptance: float = float("nan")  # the acceptance model's score (accept >= 0)
+    pose_inliers: int = 0  # the chance test: keypoint inliers of the final pose ...
+    chance_inliers: float = 0.0  # ... expected by chance (shuffled matches) ...
+    log_nfa: float = 0.0  # ... log10 false alarms (accept < MemoryConfig.max_log_nfa)
+    decision: str = ""  # which test accepted / rejected the verified candidate, and by how much
 
     @classmethod
     def from_result(cls, w, memory_on: bool) -> "WindowRecord":
@@ -84,7 +89,9 @@ class WindowRecord:
             landmarks=int(w.landmarks), memory_landmarks=int(w.memory_landmarks), memory_used=bool(w.memory_used),
             memory_stat=float(w.memory_stat), memory_threshold=float(w.memory_threshold),
             inconsistent_tracks=int(w.inconsistent), observations=int(w.observations), inliers=int(w.inliers),
-            lm_iterations=int(w.iterations), lm_cost=float(w.cost))
+            lm_iterations=int(w.iterations), lm_cost=float(w.cost), acceptance=float(r.acceptance),
+            pose_inliers=int(r.pose_inliers), chance_inliers=float(r.chance_inliers), log_nfa=float(r.log_nfa),
+            decision=memory_decision(r, memory_on))
 
     def to_json(self) -> dict:
         """A JSON-ready dict (lists, Python numbers; transforms rounded to 6 decimals); ``chunk`` only
@@ -100,6 +107,25 @@ class WindowRecord:
                 v = list(v)
             out[f.name] = v
         return out
+
+
+def memory_decision(r, memory_on: bool) -> str:
+    """Which acceptance test of a window's verified candidate accepted or rejected it, and by how much:
+    the chance test (log10 NFA against 0) and the acceptance model (score against 0)."""
+    cand = [int(c) for c in np.asarray(r.candidates) if c >= 0]
+    if not memory_on:
+        return "memory off"
+    if not cand:
+        return "no candidate"
+    nfa, score = float(r.log_nfa), float(r.acceptance)
+    tests = []
+    if np.isfinite(score):
+        tests.append(f"model {'pass' if score >= 0 else 'FAIL'}: score {score:+.2f} (accept >= 0)")
+    tests.append(f"chance test: {int(r.pose_inliers)} keypoint inliers vs {float(r.chance_inliers):.2f} by "
+                 f"chance, log10 NFA {nfa:+.1f} (gates below MemoryConfig.max_log_nfa)")
+    if not bool(r.accepted) and not (np.isfinite(score) and score < 0):
+        tests.append(f"another check FAIL (chance test, scale or transform): scale {float(r.scale):.3f}")
+    return ("accepted" if bool(r.accepted) else "rejected") + " (" + "; ".join(tests) + ")"
 
 
 def recalled_earlier_map(windows) -> bool:
