@@ -108,3 +108,28 @@ def test_masked_median_low_matches_statistics(n, seed):
     valid = rng.random((4, n)) < 0.6
     want = statistics.median_low(x[valid].tolist()) if valid.any() else 0.0
     assert float(jax.jit(robust.masked_median_low)(x, valid)) == want
+
+
+_KTH = jax.jit(robust.kth_smallest)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_kth_smallest_equals_the_sorted_value(seed):
+    """Radix select returns exactly the sorted array's k-th value: ties, both infinities, NaN (sorted
+    last), -0.0, magnitudes over 10 decades, rows with few or no valid entries."""
+    rng = np.random.default_rng(seed)
+    x = (rng.normal(size=(6, 257)) * 10.0 ** rng.uniform(-5, 5, (6, 257))).astype(np.float32)
+    x[0] = np.round(x[0] * 1e-3)  # many ties, zeros of both signs
+    x[0, :5] = -0.0
+    x[1, rng.random(257) < 0.1] = np.inf
+    x[2, rng.random(257) < 0.1] = -np.inf
+    x[3, rng.random(257) < 0.05] = np.nan
+    valid = rng.random((6, 257)) < 0.7
+    valid[4] = rng.random(257) < 0.02
+    valid[5] = False
+    k = rng.integers(0, 257, 6)
+    want = np.take_along_axis(np.sort(np.where(valid, x, np.inf), -1), k[:, None], -1)[:, 0]
+    got = np.asarray(_KTH(x, valid, k))
+    assert np.array_equal(got, want, equal_nan=True)  # -0.0 == 0.0 here, as in the sort
+    g = jax.grad(lambda a: robust.kth_smallest(a, valid[:1], 7)[0])(jnp.asarray(np.abs(x[4:5]) + 1))
+    assert float(g.sum()) == 1.0 and int((g != 0).sum()) == 1  # the gradient reaches the element chosen

@@ -76,9 +76,9 @@ def static_rejected(image_t, image_t2, flow, ego, reference, radius: int = 2, k:
     sigma = robust.MAD_TO_SIGMA * masked_median_low(jnp.abs(ex - med), ref)
     out = excess > med + k * jnp.maximum(sigma, 1e-4)
     if q > 0:
-        x = jnp.sort(jnp.where(ref, e_flow[::STATS_STRIDE, ::STATS_STRIDE], jnp.inf).reshape(-1))
         n = jnp.sum(ref)
-        out &= e_ego > x[jnp.clip(jnp.floor((n - 1) * q).astype(jnp.int32), 0, x.shape[0] - 1)]
+        rank = jnp.floor((n - 1) * q).astype(jnp.int32)
+        out &= e_ego > robust.kth_smallest(e_flow[::STATS_STRIDE, ::STATS_STRIDE].reshape(-1), ref.reshape(-1), rank)
     return out
 
 

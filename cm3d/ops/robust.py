@@ -14,6 +14,41 @@ import jax.numpy as jnp
 MAD_TO_SIGMA = 1.4826  # σ = 1.4826 · MAD for Gaussian data (1 / Φ⁻¹(3/4))
 
 
+def _order_keys(x):
+    """float32 -> uint32 keys in the same order (negative floats flipped, positives above them);
+    NaN (any sign) above +inf, where ``jnp.sort`` places it."""
+    x = jnp.where(jnp.isnan(x), jnp.nan, x)
+    b = jax.lax.bitcast_convert_type(x, jnp.uint32)
+    return jnp.where((b >> 31) == 1, ~b, b | jnp.uint32(0x80000000))
+
+
+def kth_smallest(x, valid, k):
+    """The ``k``-th smallest (0-based) of ``x`` over ``valid`` along the last axis: the value
+    ``jnp.sort(jnp.where(valid, x, inf))[..., k]`` holds, found by radix select (32 counting passes
+    over the bits of order-preserving keys) instead of a sort, which XLA:CPU runs 10-30x slower at
+    the sizes of a frame's pixels. The value is gathered from ``x``, so gradients reach the element
+    it is, as through a sort; ``k`` past the valid count gives the sort's padding, +inf."""
+    x = jnp.asarray(x)
+    valid = jnp.broadcast_to(jnp.asarray(valid, bool), x.shape)
+    rank = jnp.clip(jnp.broadcast_to(jnp.asarray(k, jnp.int32), x.shape[:-1]), 0, x.shape[-1] - 1)
+    if x.dtype != jnp.float32:  # other widths: the sort (none on a hot path)
+        s = jnp.sort(jnp.where(valid, x, jnp.inf), -1)
+        return jnp.take_along_axis(s, rank[..., None], -1)[..., 0]
+    key = jnp.where(valid, _order_keys(x), _order_keys(jnp.float32(jnp.inf)))  # the sort's padding
+
+    def bit_pass(i, carry):  # one bit of the answer's key, the most significant first
+        prefix, rank = carry
+        bit = (31 - i).astype(jnp.uint32)
+        zero = jnp.sum((key >> bit) == (prefix[..., None] >> bit), -1, dtype=jnp.int32)  # prefix, then 0
+        one = rank >= zero
+        return jnp.where(one, prefix | (jnp.uint32(1) << bit), prefix), jnp.where(one, rank - zero, rank)
+
+    prefix, _ = jax.lax.fori_loop(0, 32, bit_pass, (jnp.zeros(x.shape[:-1], jnp.uint32), rank))
+    hit = (key == prefix[..., None]) & valid
+    val = jnp.take_along_axis(x, jnp.argmax(hit, -1)[..., None], -1)[..., 0]
+    return jnp.where(jnp.any(hit, -1), val, jnp.inf)  # no valid element holds it: the padding
+
+
 def masked_median(x, valid, axis: int = -1):
     """Median of ``x`` over ``valid`` along ``axis`` (0 where nothing is valid)."""
     x = jnp.asarray(x)
@@ -21,11 +56,7 @@ def masked_median(x, valid, axis: int = -1):
     x = jnp.moveaxis(x, axis, -1)
     valid = jnp.moveaxis(valid, axis, -1)
     n = jnp.sum(valid, -1)
-    s = jnp.sort(jnp.where(valid, x, jnp.inf), -1)
-    size = x.shape[-1]
-    lo = jnp.clip((n - 1) // 2, 0, size - 1)[..., None]
-    hi = jnp.clip(n // 2, 0, size - 1)[..., None]
-    med = 0.5 * (jnp.take_along_axis(s, lo, -1) + jnp.take_along_axis(s, hi, -1))[..., 0]
+    med = 0.5 * (kth_smallest(x, valid, (n - 1) // 2) + kth_smallest(x, valid, n // 2))
     return jnp.where(n > 0, med, jnp.zeros_like(med))
 
 
@@ -34,8 +65,7 @@ def masked_median_low(x, valid):
     x = jnp.asarray(x).reshape(-1)
     valid = jnp.broadcast_to(jnp.asarray(valid, bool).reshape(-1), x.shape)
     n = jnp.sum(valid)
-    s = jnp.sort(jnp.where(valid, x, jnp.inf))
-    return jnp.where(n > 0, s[jnp.clip((n - 1) // 2, 0, x.shape[0] - 1)], 0.0)
+    return jnp.where(n > 0, kth_smallest(x, valid, (n - 1) // 2), 0.0)
 
 
 def robust_sigma(r, valid, axis: int = -1):
