@@ -26,6 +26,22 @@ _state = {"dir": None, "source": None}
 _loaded: dict = {}  # key -> jax.stages.Compiled, this process's programs
 
 
+_thread = threading.local()
+
+
+def _count_hit(event: str, **_) -> None:
+    if event == "/jax/compilation_cache/cache_hits":  # recorded in the thread that compiles
+        _thread.hits = getattr(_thread, "hits", 0) + 1
+
+
+jax.monitoring.register_event_listener(_count_hit)
+
+
+def _hits() -> int:
+    """This thread's count of JAX persistent-cache hits so far."""
+    return getattr(_thread, "hits", 0)
+
+
 def set_cache_dir(path) -> None:
     """Keep serialised programs in ``path`` (created on the first write); ``None``: in memory only."""
     _state["dir"] = None if path is None else Path(path)
@@ -145,8 +161,12 @@ def compiled(name: str, fn, static: dict, *args):
         prog = _load(_path(name, key), key) if _state["dir"] is not None else None
         if prog is None:
             how = "compiled"
+            hits = _hits()
             prog = fn.lower(*args, **static).compile()
-            if _state["dir"] is not None:
+            # An executable JAX took from its persistent compilation cache serialises without some
+            # of its kernels on XLA:CPU (jax 0.10: the loaded copy fails with "Function
+            # wrapped_slice not found"): store only what XLA compiled here and now.
+            if _state["dir"] is not None and _hits() == hits:
                 _store(_path(name, key), key, prog)
         _loaded[key] = prog
         return prog, how

@@ -127,3 +127,31 @@ def test_the_prefetched_piece_is_shaped_like_the_prepared_one():
     spec = piece_spec(seq, cfg)
     x = jax.tree.map(jnp.asarray, piece)
     assert programs.program_key("p", (), spec) == programs.program_key("p", (), x)
+
+
+def test_a_persistent_cache_hit_is_not_stored(cache):
+    """JAX's persistent cache serves an executable that serialises without some kernels (it failed
+    to run when loaded: "Function wrapped_slice not found"): such a program stays in memory only
+    (a freshly compiled one is stored: test_loaded_program_equals_tracing_afresh)."""
+    from jax._src import compilation_cache
+
+    if not compilation_cache.is_cache_used(jax.devices()[0].client):
+        pytest.skip("JAX's persistent compilation cache is off in this run (conftest turns it on)")
+    f = jax.jit(lambda x: jnp.cumsum(x[3:17] * 2.0)[::2])  # a program of its own: slices
+    x = jnp.arange(32, dtype=jnp.float32)
+    want = np.cumsum(np.arange(3, 17) * 2.0)[::2]
+    old = (jax.config.jax_persistent_cache_min_compile_time_secs, jax.config.jax_persistent_cache_min_entry_size_bytes)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    try:
+        hits = programs._hits()
+        jax.clear_caches()
+        np.testing.assert_allclose(f.lower(x).compile()(x), want)  # into JAX's persistent cache
+        jax.clear_caches()
+        prog, how = programs.compiled("sliced", f, {}, x)  # its persistent-cache hit
+        assert how == "compiled" and programs._hits() > hits
+        np.testing.assert_allclose(prog(x), want)
+        assert not list(cache.glob("sliced-*")), "an executable from JAX's cache was stored"
+    finally:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", old[0])
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", old[1])
