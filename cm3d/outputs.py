@@ -143,7 +143,9 @@ def sequence_metrics(result) -> dict | None:
     """Metrics of a :class:`cm3d.pipeline.SequenceResult` against its ground truth (None without):
     ATE (Sim3, SE3), RPE and rotation error of the prior and the refined trajectory, whether ATE is
     defined, prior depth Abs Rel / δ<1.25 (pixels with ground truth and a prediction), mask IoU, and
-    the run's warnings and whether its refinement was kept."""
+    the run's warnings and whether its refinement was kept; with the windows' chain and the global
+    pose graph (:mod:`cm3d.pipeline.global_graph`), the chained trajectory's figures (``chained``)
+    and the graph's facts (``global_graph``: whether it ran and was kept, the consistency test)."""
     from cm3d.eval import metrics
 
     seq = result.sequence
@@ -154,6 +156,9 @@ def sequence_metrics(result) -> dict | None:
     out = {"frames": int(seq.num_frames),
            "prior": _trajectory_metrics(ts, gt.cam_to_world, result.prior),
            "refined": _trajectory_metrics(ts, gt.cam_to_world, result.poses)}
+    chained = getattr(result, "chained", None)
+    if chained is not None:  # the windows chained anchor to anchor, before the global graph (issue 26)
+        out["chained"] = _trajectory_metrics(ts, gt.cam_to_world, chained)
     a, b = out["prior"]["ate"], out["refined"]["ate"]
     out["ate_defined"] = out["prior"]["ate_defined"] and out["refined"]["ate_defined"]
     out["ate_reduction_pct"] = 100.0 * (a - b) / a if a > 0 else None
@@ -164,6 +169,9 @@ def sequence_metrics(result) -> dict | None:
         mm = programs.call("mask_metrics", _mask_metrics_jit, {}, np.asarray(result.masks, bool),
                            np.asarray(gt.dynamic_mask))
         out["mask"] = {k: float(v) for k, v in mm.items()}
+    g = getattr(result, "global_graph", None)
+    if g is not None:
+        out["global_graph"] = {k: v for k, v in g.items() if isinstance(v, (bool, int, float, str, list))}
     report = getattr(result, "report", None)
     if report is not None:
         out["refinement_kept"] = report.refinement_kept

@@ -7,6 +7,7 @@ import dataclasses
 
 from cm3d import memory, trajectory
 from cm3d.motion import MotionConfig
+from cm3d.pipeline.global_graph import GlobalGraphConfig
 from cm3d.ops.flow import FlowConfig
 from cm3d.ops.gmm import GMMConfig
 from cm3d.ops.keypoints import KeypointConfig
@@ -39,7 +40,8 @@ class PipelineConfig:
     floor of the point-to-plane std in map voxels; map_min_support: stored entries drop voxels with
     fewer samples than this share of the median voxel's; keyframe_threshold: descriptor distance
     between memory keyframes; feature_capacity: 3D keypoints per frame; flow / keypoints: the
-    OpenCV front end; seed: the RANSAC key.
+    OpenCV front end; global_graph: the pose graph over every frame after the windows
+    (:mod:`cm3d.pipeline.global_graph`, host side); seed: the RANSAC key.
 
     ``batching="native"``: the LM's sequential ``custom_vmap`` rule fails inside ``scan`` + ``cond``."""
 
@@ -63,6 +65,7 @@ class PipelineConfig:
     feature_capacity: int = 128
     flow: FlowConfig = FlowConfig()
     keypoints: KeypointConfig = KeypointConfig(max_matches=256)
+    global_graph: GlobalGraphConfig = GlobalGraphConfig()
     seed: int = 0
 
     def __post_init__(self):

@@ -20,6 +20,7 @@ import numpy as np
 from cm3d import memory
 from cm3d.data import quality
 from cm3d.pipeline.config import PipelineConfig
+from cm3d.pipeline.global_graph import global_refine
 from cm3d.pipeline.photometric import PhotometricCheck, check_refinement
 from cm3d import programs
 from cm3d.pipeline.prepare import Inputs, piece_spec, prepare_chunks
@@ -165,6 +166,8 @@ class SequenceResult:
     windows: list
     sequence: Any
     report: RunReport | None = None
+    chained: np.ndarray | None = None
+    global_graph: dict | None = None
 
 
 def collect(outputs: StepOutputs, sequence, cfg: PipelineConfig = PipelineConfig()) -> SequenceResult:
@@ -321,10 +324,22 @@ def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBa
         if progress is not None:
             progress(f"visit {i}: back end", 1, 1)
         res = collect(out, seq, cfg)
+        # one pose graph over every frame: the windows' refined motions and the priors (issue 26)
+        res.chained = res.poses.copy()
+        res.poses, res.global_graph = global_refine(res.prior, res.chained, [w.frames for w in res.windows],
+                                                    cfg.global_graph)
         res.report = RunReport(q, None, True, True)
         if checks:
             ph = check_refinement(seq, res.prior, res.poses, res.masks)
-            warnings = () if ph.kept else (f"kept the prior poses: {ph.reason}",)
+            warnings = ()
+            if not ph.kept and res.global_graph.get("ran"):  # the images refuse the global graph: the chain?
+                chain = check_refinement(seq, res.prior, res.chained, res.masks)
+                warnings = (f"kept the windows' chained poses, not the global graph's: {ph.reason}",)
+                res.global_graph["kept"] = False
+                res.poses, ph = res.chained.copy(), chain
+            elif res.global_graph.get("ran"):
+                res.global_graph["kept"] = True
+            warnings += () if ph.kept else (f"kept the prior poses: {ph.reason}",)
             if not ph.kept:
                 res.poses = res.prior.copy()
             res.report = RunReport(q, ph, ph.kept, True, warnings)

@@ -1,0 +1,242 @@
+"""One consistent trajectory from the windows (host side around a compiled chain solve, issue 26).
+
+Each window refines its poses against its own tracks and hands its last pose to the next window as
+the anchor, so the refined trajectory is a chain of window-local motions: right inside a window,
+but nothing ties it to the prior beyond the first frame, and the windows' small errors add up over
+a long sequence. :func:`global_refine` solves one pose graph over every frame instead:
+
+* a prior factor per frame at its prior pose (the VGGT-like input: jitter and drift, no chaining);
+* a motion factor per consecutive frame pair at the window-refined relative pose (every pair
+  belongs to exactly one window: a window's anchor is the previous window's last frame);
+* noise levels (translation / rotation, prior and motion) by robust variance component estimation
+  (median of ``r² / (1 − h)`` against χ²₁'s median, ``h`` the leverage), so nothing is tuned to a
+  data set's units;
+* the graph runs only when the windows disagree with the priors beyond chance
+  (:func:`chain_consistency`): the chain is placed on the priors by one Sim(3); each window's mean
+  position residual, whitened by the priors' frame-to-frame jitter, is a χ² statistic. Where the
+  windows agree (the usual case over a few windows: the chain is then more accurate than the priors
+  can tell), the priors could only pull their own jitter into the result, so the chain is kept;
+* a window whose refined shape the priors reject (:func:`window_misfit`: the window's poses rigidly
+  placed on its frames' priors, whitened squared residuals each capped at ``χ²₆(outlier_quantile)``,
+  summed, above the ``window_quantile`` of χ²(6 (n − 1)) times the median window's misfit per
+  degree of freedom when that is above 1 and there are 3 windows or more: the priors' noise is not
+  white within a window) loses its motion factors: there the result is the prior; single motion
+  factors above ``χ²₆(outlier_quantile)`` are dropped too.
+
+The chain is block-tridiagonal (:func:`cm3d.solvers.chain_pose_graph.solve_chain`, padded to a
+multiple of ``pad_frames`` frames: one compiled program for many lengths). Whether the result is
+kept is decided by evidence the graph never saw: :func:`cm3d.pipeline.run` compares the images
+under the prior and the final poses (:func:`cm3d.pipeline.photometric.check_refinement`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from cm3d.ops import robust, se3
+from cm3d.solvers import factors
+from cm3d.solvers.chain_pose_graph import solve_chain
+from cm3d.solvers.factors import FactorGraph, MotionFactors, PriorFactors, ProjectionFactors
+
+_CHI2_1_MEDIAN = 0.45493642311957283  # median of χ²_1
+
+
+@dataclasses.dataclass(frozen=True)
+class GlobalGraphConfig:
+    """Options of :func:`global_refine`: ``enabled``; consistency_p: the graph runs when the chained
+    windows' agreement with the priors has a p-value below this (:func:`chain_consistency`; 1: always);
+    vce_iterations: variance-estimation rounds;
+    outlier_quantile: single motion factors above ``χ²₆(q)`` are dropped; window_quantile: a window
+    whose motion residuals exceed ``χ²_{6n}(q)`` keeps the prior; iterations: LM steps per solve;
+    pad_frames: the graph is padded to a multiple of this many frames."""
+
+    enabled: bool = True
+    consistency_p: float = 0.01
+    vce_iterations: int = 4
+    outlier_quantile: float = 0.999
+    window_quantile: float = 0.999
+    iterations: int = 8
+    pad_frames: int = 64
+
+    def __post_init__(self):
+        if self.vce_iterations < 1 or self.iterations < 1 or self.pad_frames < 1:
+            raise ValueError(f"GlobalGraphConfig: vce_iterations, iterations, pad_frames >= 1 required, got {self}")
+        if not (0 < self.outlier_quantile < 1 and 0 < self.window_quantile < 1 and 0 < self.consistency_p <= 1):
+            raise ValueError(f"GlobalGraphConfig: quantiles in (0, 1) required, got {self}")
+
+
+def _pad(a, n: int, mode: str):
+    extra = n - a.shape[0]
+    if extra <= 0:
+        return a
+    fill = np.zeros((extra,) + a.shape[1:], a.dtype) if mode == "zeros" else np.repeat(a[-1:], extra, 0)
+    return np.concatenate([a, fill])
+
+
+def chain_graph(prior, measured, sigma_prior, sigma_motion, weight) -> FactorGraph:
+    """The landmark-free chain: a prior per frame at ``prior`` (N, 4, 4), a motion factor
+    ``(i, i + 1)`` per row of ``measured`` (N − 1, 4, 4) with ``weight`` (N − 1,); sigmas (6,)."""
+    P = jnp.asarray(prior)
+    N = P.shape[0]
+    f = lambda a: jnp.asarray(a, P.dtype)  # noqa: E731
+    Q = N - 1
+    return FactorGraph(
+        intrinsics=jnp.tile(jnp.eye(3, dtype=P.dtype), (N, 1, 1)),
+        projection=ProjectionFactors(pose_idx=jnp.zeros(1, jnp.int32), point_idx=jnp.zeros(1, jnp.int32),
+                                     z=jnp.zeros((1, 2), P.dtype), sigma=jnp.ones(1, P.dtype),
+                                     weight=jnp.zeros(1, P.dtype), memory=jnp.zeros(1, bool)),
+        prior=PriorFactors(pose_idx=jnp.arange(N, dtype=jnp.int32), target=P,
+                           sigma=jnp.broadcast_to(f(sigma_prior), (N, 6)), weight=jnp.ones(N, P.dtype)),
+        motion=MotionFactors(idx_a=jnp.arange(Q, dtype=jnp.int32), idx_b=jnp.arange(1, Q + 1, dtype=jnp.int32),
+                             measured=f(measured), sigma=jnp.broadcast_to(f(sigma_motion), (Q, 6)), weight=f(weight)),
+        huber_k=jnp.asarray(np.inf, P.dtype), memory_alpha=jnp.asarray(0.5, P.dtype), pose_fixed=jnp.zeros(N, bool))
+
+
+def pair_windows(num_frames: int, windows) -> np.ndarray:
+    """(S − 1,) the window of each consecutive pair ``(i, i + 1)`` (-1: no window): the window whose
+    frames ``(first, last)`` hold ``first < i + 1 <= last``."""
+    out = -np.ones(max(num_frames - 1, 0), np.int64)
+    for k, (a, b) in enumerate(windows):
+        out[max(a, 0):max(min(b, num_frames - 1), 0)] = k
+    return out
+
+
+def _vce(res, lev, use, sig):
+    """Scale ``sig`` (6,) per block (translation, rotation) by the robust variance component of the
+    whitened residuals ``res`` (n, 6) with leverages ``lev`` on rows ``use``."""
+    sig = sig.copy()
+    for sl in (slice(0, 3), slice(3, 6)):
+        ok = use[:, None] & (lev[:, sl] < 1.0 - 1e-6)
+        if np.sum(ok) > 3:
+            v = (res[:, sl] ** 2 / np.maximum(1.0 - lev[:, sl], 1e-6))[ok]
+            sig[sl] *= np.sqrt(max(float(np.median(v)), 1e-12) / _CHI2_1_MEDIAN)
+    return sig
+
+
+@jax.jit
+def window_misfit(prior, poses, valid, sigma, cap):
+    """How far one window's refined shape is from the prior's over the same frames: the rigid motion
+    ``T`` that best places the window's poses (n, 4, 4) on the priors (Gauss-Newton on
+    ``Σ |log(P_i^{-1} T X_i) / σ|²``, from the first frame's), then the sum over ``valid`` (n,) frames of
+    the whitened squared residuals, each capped at ``cap``. Independent of the global solution."""
+    Xi = se3.inverse(poses)
+    T = prior[0] @ Xi[0]
+    for _ in range(4):
+        r = se3.log(se3.inverse(prior) @ T @ poses) / sigma
+        A = factors.adjoint(Xi) / sigma[:, None]  # d r / d δ for T exp(δ), first order
+        H = jnp.einsum("n,nki,nkj->ij", valid, A, A)
+        g = jnp.einsum("n,nki,nk->i", valid, A, r)
+        d = -jnp.linalg.solve(H + 1e-9 * jnp.eye(6, dtype=H.dtype), g)
+        T = T @ se3.exp(jnp.where(jnp.isfinite(d), d, 0.0))
+    r = se3.log(se3.inverse(prior) @ T @ poses) / sigma
+    return jnp.sum(valid * jnp.minimum(jnp.sum(r * r, -1), cap))
+
+
+def chain_consistency(prior, poses, windows) -> dict:
+    """Do the chained windows ``poses`` (S, 4, 4) agree with the ``prior`` (S, 4, 4) beyond chance?
+
+    The chain is placed on the priors by the Sim(3) of their camera centres (Umeyama); ``r_i`` the
+    residual centre per frame. The priors' per-frame jitter ``σ`` (per axis) is the robust spread of
+    ``r_{i+1} − r_i`` over ``√2`` (differences cancel slow drift and the windows' offsets); each window
+    (its frames after the shared anchor, ``n`` of them) contributes ``n |mean r / σ|²``, χ²₃ when the
+    chain is right up to the placement. Returns ``statistic``, ``dof`` (3 per window less 3 for the
+    placement, at least 1), ``p`` (χ² survival) and ``sigma`` (3,).
+
+    A prior's slow drift (VGGT's, or the random walk of :func:`cm3d.data.priors.pose_errors`) offsets
+    whole windows too, so over many windows the test also rejects an exact chain when the priors
+    drift (seeded orbits of 100 frames, 5 windows, half the error as drift: p < 0.01 in 4 of 8); the
+    graph then follows the priors' drift, and its result stays below the priors' ATE."""
+    from scipy import stats
+
+    from cm3d.solvers.umeyama import umeyama
+
+    P, X = np.asarray(prior, np.float64), np.asarray(poses, np.float64)
+    s, R, t = (np.asarray(v, np.float64) for v in umeyama(jnp.asarray(X[:, :3, 3]), jnp.asarray(P[:, :3, 3])))
+    r = P[:, :3, 3] - (s * X[:, :3, 3] @ R.T + t)
+    dz = np.diff(r, axis=0)
+    sig = np.maximum(1.4826 * np.median(np.abs(dz - np.median(dz, 0)), 0) / np.sqrt(2.0), 1e-12)
+    stat, dof = 0.0, 0
+    for k, (a, b) in enumerate(windows):
+        f = np.arange(a if k == 0 else a + 1, min(b, len(P) - 1) + 1)
+        if f.size:
+            stat += f.size * float(np.sum((r[f].mean(0) / sig) ** 2))
+            dof += 3
+    dof = max(dof - 3, 1)
+    return {"statistic": stat, "dof": dof, "p": float(stats.chi2.sf(stat, dof)), "sigma": sig}
+
+
+def global_refine(prior, poses, windows, cfg: GlobalGraphConfig = GlobalGraphConfig()):
+    """The global pose graph over a sequence (module docstring). prior, poses (S, 4, 4) cam_to_world
+    (the input and the windows' chained result); windows: ``(first, last)`` frames per window.
+    Returns (poses (S, 4, 4), facts dict: ``ran``, sigmas, motion factors used, windows kept /
+    dropped (``window_kept`` per window), costs)."""
+    P0 = np.asarray(prior, np.float64)
+    X = np.asarray(poses, np.float64)
+    if P0.shape != X.shape or P0.ndim != 3 or P0.shape[1:] != (4, 4):
+        raise ValueError(f"global_refine: prior and poses must both be (S, 4, 4), got {P0.shape}, {X.shape}")
+    S = P0.shape[0]
+    facts = {"ran": False, "windows": len(windows)}
+    if not cfg.enabled or S < 3 or not np.all(np.isfinite(X)) or not np.all(np.isfinite(P0)):
+        return X.copy(), {**facts, "reason": "disabled" if not cfg.enabled else "fewer than 3 frames or non-finite poses"}
+    cons = chain_consistency(P0, X, windows)
+    facts.update({"consistency_statistic": round(cons["statistic"], 2), "consistency_dof": cons["dof"],
+                  "consistency_p": cons["p"]})
+    if cons["p"] >= cfg.consistency_p and cfg.consistency_p < 1:
+        return X.copy(), {**facts, "reason": f"the windows agree with the priors (p = {cons['p']:.3g})"}
+    meas = np.linalg.inv(X[:-1]) @ X[1:]
+    win = pair_windows(S, windows)
+    N = -(-S // cfg.pad_frames) * cfg.pad_frames
+    Pp, Mp = _pad(P0, N, "last"), _pad(meas, N - 1, "last")
+    real = np.arange(N - 1) < S - 1
+    w = real.astype(np.float64)
+    # start: centre noise from the prior's own step length, 1 degree; the motion 10x tighter
+    step = np.linalg.norm(np.diff(P0[:, :3, 3], axis=0), axis=1)
+    scale = float(np.median(step)) if np.any(step > 0) else 1.0
+    sp = np.array([max(scale, 1e-9)] * 3 + [np.deg2rad(1.0)] * 3)
+    sm = sp / 10.0
+    lim1 = float(robust.chi2_quantile(cfg.outlier_quantile, 6))
+    nwin = len(windows)
+    dropped = np.zeros(nwin, bool)
+    misfit = np.zeros(nwin)
+    frame_real = np.arange(N) < S
+    for rnd in range(cfg.vce_iterations + 1):
+        sol = solve_chain(chain_graph(Pp, Mp, sp, sm, w), jnp.asarray(Pp), iterations=cfg.iterations)
+        if rnd == cfg.vce_iterations:
+            break
+        rp, hp, rm, hm = (np.asarray(x, np.float64) for x in (sol.e_prior, sol.h_prior, sol.e_motion, sol.h_motion))
+        sp_new, sm_new = _vce(rp, hp, frame_real, sp), _vce(rm, hm, w > 0, sm)
+        e2 = np.sum((rm * sm / sm_new) ** 2, 1)  # whitened by the updated sigmas
+        sp, sm = sp_new, sm_new
+        # windows whose refined shape the priors reject keep the prior
+        dof = np.zeros(nwin)
+        for k, (a, b) in enumerate(windows):
+            n = min(b, S - 1) - a + 1
+            if n < 2:
+                continue
+            pad = -(-n // 8) * 8
+            sel = np.minimum(np.arange(a, a + pad), S - 1)
+            misfit[k] = float(window_misfit(jnp.asarray(P0[sel]), jnp.asarray(X[sel]),
+                                            jnp.asarray((np.arange(pad) < n).astype(P0.dtype)), jnp.asarray(sp),
+                                            lim1))
+            dof[k] = 6 * (n - 1)
+        # the typical window sets the unit (the priors' noise is not white within a window: drift)
+        has = dof > 0
+        unit = max(1.0, float(np.median(misfit[has] / dof[has]))) if np.sum(has) >= 3 else 1.0
+        for k in np.flatnonzero(has):
+            dropped[k] |= misfit[k] > unit * float(robust.chi2_quantile(cfg.window_quantile, dof[k]))
+        w = np.where(real & (e2 <= lim1), w, 0.0)
+        w[: S - 1][np.isin(win, np.flatnonzero(dropped))] = 0.0
+    out = np.asarray(sol.poses, np.float64)[:S]
+    if not np.all(np.isfinite(out)):
+        return X.copy(), {**facts, "reason": "non-finite solution"}
+    facts.update({"ran": True, "sigma_prior_trans": float(sp[0]), "sigma_prior_rot_deg": float(np.rad2deg(sp[3])),
+                  "sigma_motion_trans": float(sm[0]), "sigma_motion_rot_deg": float(np.rad2deg(sm[3])),
+                  "motion_factors": S - 1, "motion_factors_used": int(np.sum(w[: S - 1] > 0)),
+                  "windows_dropped": int(dropped.sum()), "window_kept": [bool(not d) for d in dropped],
+                  "window_misfit": [round(float(m), 2) for m in misfit],
+                  "cost_initial": float(sol.cost_initial), "cost": float(sol.cost)})
+    return out, facts
