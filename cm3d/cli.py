@@ -166,7 +166,7 @@ def _run_chunks(chunks, cfg, bank, args, recorder=None):
              "boundaries": [dataclasses.asdict(b) for b in st.boundaries],
              "pose_graph": {k: v for k, v in f.items()
                             if k not in ("loop_discrepancy", "loop_kept", "chained_transforms", "poses_stitched",
-                                         "poses_prior_stitched", "frames")},
+                                         "frames")},
              "frame_refinement": f["frames"],
              "loops": [{"chunk": lc.chunk, "other": lc.other, "frames": list(lc.frames),
                         "other_frames": list(lc.other_frames or ()), "transform": lc.transform,

@@ -3,8 +3,9 @@
     .venv/bin/python experiments/long_sequence.py [--frames 120 --height 288 --width 384]
                                                   [--worlds own,held_out] [--level moderate] [--quick] [--json PATH]
 
-One camera path per world (cm3d's own synthetic scene 0 visit 0, and the held-out world's hall 0
-visit 0, :mod:`cm3d.data.held_out_world`), VGGT-like priors at ``--level`` (jitter + random-walk
+One camera path per world (cm3d's own synthetic scene 0 visit 0, the held-out world's hall 0
+visit 0, :mod:`cm3d.data.held_out_world`, and the real 7-Scenes kitchen of ``../shared/data``: all
+its 390 frames at ``--resize`` 0.5, 320x240, whatever ``--frames``), VGGT-like priors at ``--level`` (jitter + random-walk
 drift), given to :func:`cm3d.pipeline.run` as ONE sequence (default config for the image size).
 Rows follow the paper's Table 9: the prior, cm3d without memory, cm3d with memory. For each cm3d row
 two trajectories: ``chained`` (the windows' refinements chained anchor to anchor, what cm3d gave
@@ -13,14 +14,14 @@ before issue 26) and the final result (``cm3d``: the global pose graph of
 trans / rot on the whole trajectory, and the mean ATE of 40-frame segments each aligned on its own.
 
 Chunked (``--chunks``, default 4 x 40 frames overlapping by 10, so 130 frames; off with ``--chunks 0``):
-the same world renders one longer path once; it is given (a) as one sequence with one prior and
-(b) as VGGT-like chunks, each with its own prior (own unknown scale and frame:
-:func:`cm3d.data.priors.segment_priors`), run by :func:`cm3d.long_video.stitch_with_memory` (what
-``cm3d run c0.npz c1.npz ...`` runs: the pipeline per chunk, the chunks' refined poses stitched on
-their overlaps, the Sim(3) pose graph with recalled loops, the whole-trajectory refinement), with
-and without memory. Compared with the stitched priors (the same alignment of the raw chunk priors).
+the same world renders one longer path once (the kitchen: all its frames); it is given (a) as one
+sequence with one prior and (b) as VGGT-like chunks, each with its own prior (own unknown scale and
+frame: :func:`cm3d.data.priors.segment_priors`), run by :func:`cm3d.long_video.stitch_with_memory`
+(what ``cm3d run c0.npz c1.npz ...`` runs: the pipeline per chunk, the chunks stitched on their
+overlaps, the Sim(3) pose graph with recalled loops, the whole-trajectory refinement), with and
+without memory. ``stitched priors``: the stitch before the whole-trajectory refinement.
 
-JSON keys per world ``W`` (own, held_out): ``W_ate_prior``, ``W_ate_chained_nomem``, ``W_ate_nomem``,
+JSON keys per world ``W`` (own, held_out, kitchen): ``W_ate_prior``, ``W_ate_chained_nomem``, ``W_ate_nomem``,
 ``W_ate_chained``, ``W_ate`` (with memory), ``W_ratio`` (= ate / ate_prior, target <= 0.5),
 ``W_seg_ate_prior``, ``W_seg_ate_chained``, ``W_seg_ate``, ``W_rpe_trans_*``, ``W_rpe_rot_*``,
 ``W_windows_dropped``, ``W_global_kept``; chunked: ``W_chunk_ate_stitched_prior``,
@@ -38,6 +39,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # OpenBLAS threads spin on s
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
 import time  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -49,7 +51,21 @@ from cm3d.outputs import write_json  # noqa: E402
 SEGMENT = 40
 
 
-def make_world(name: str, frames: int, height: int, width: int, level: str):
+KITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "sevenscenes_redkitchen"
+
+
+def kitchen(resize: float):
+    """Every frame of the shared 7-Scenes redkitchen (390: every 2nd of 100-398 and 460-938, so one
+    jump of 62 frames) at ``resize``, with ground truth."""
+    from cm3d.data import sevenscenes
+
+    folder = Path(os.environ.get("CM3D_SHARED_DATA", KITCHEN.parent)) / KITCHEN.name
+    return sevenscenes.load_sevenscenes(folder, resize=resize)
+
+
+def make_world(name: str, frames: int, height: int, width: int, level: str, resize: float = 0.5):
+    if name == "kitchen":
+        return priors.priors_for(kitchen(resize), level, seed=0)  # all its frames, whatever --frames
     if name == "own":
         cfg = synthetic.WorldConfig(height=height, width=width)
         return synthetic.generate(0, 0, frames, level, cfg)
@@ -58,13 +74,17 @@ def make_world(name: str, frames: int, height: int, width: int, level: str):
     raise ValueError(f"unknown world {name!r}")
 
 
-def render(name: str, frames: int, height: int, width: int):
-    """(images, ground truth, fps) of visit 0 of the world's scene 0 (one render for both uses)."""
+def render(name: str, frames: int, height: int, width: int, resize: float = 0.5):
+    """(images, ground truth, timestamps) of visit 0 of the world's scene 0 (one render for both
+    uses); the kitchen: its frames (all of them)."""
+    if name == "kitchen":
+        seq = kitchen(resize)
+        return np.asarray(seq.images), seq.gt, np.asarray(seq.timestamps, np.float64)
     if name == "own":
         cfg = synthetic.WorldConfig(height=height, width=width)
-        return (*synthetic.render_ground_truth(synthetic.make_scene(0, cfg), 0, frames, cfg), cfg.fps)
+        return (*synthetic.render_ground_truth(synthetic.make_scene(0, cfg), 0, frames, cfg), np.arange(frames) / cfg.fps)
     cfg = held_out_world.HeldOutConfig(height=height, width=width)
-    return (*held_out_world.render_visit(held_out_world.make_hall(0), 0, frames, cfg), cfg.fps)
+    return (*held_out_world.render_visit(held_out_world.make_hall(0), 0, frames, cfg), np.arange(frames) / cfg.fps)
 
 
 def run_chunked(name: str, args) -> tuple[dict, list]:
@@ -72,8 +92,8 @@ def run_chunked(name: str, args) -> tuple[dict, list]:
     from cm3d import long_video
 
     n = args.chunk + (args.chunks - 1) * (args.chunk - args.overlap)
-    images, gt, fps = render(name, n, args.height, args.width)
-    ts = np.arange(n) / fps
+    images, gt, ts = render(name, n, args.height, args.width, args.resize)
+    n = len(images)  # the kitchen: all its frames
     ranges = synthetic.chunk_ranges(n, args.chunk, args.overlap)
     chunks = priors.segment_priors(images, gt, ranges, args.level, seed=1, timestamps=ts)
     whole = priors.make_priors(images, gt, args.level, seed=2, timestamps=ts)
@@ -90,7 +110,7 @@ def run_chunked(name: str, args) -> tuple[dict, list]:
         out[f"{name}_chunk_ate{tag}"] = ate(res.sequence.cam_to_world)
         out[f"{name}_chunk_seconds{tag}"] = dt
         if mem:
-            out[f"{name}_chunk_ate_stitched_prior"] = ate(res.refinement["poses_prior_stitched"])
+            out[f"{name}_chunk_ate_stitched_prior"] = ate(res.refinement["poses_stitched"])
             out[f"{name}_chunk_recalls"] = int(res.refinement["recalls"])
     out[f"{name}_chunk_ate_one_prior"] = ate(whole.cam_to_world)
     out[f"{name}_chunk_ate_one_sequence"] = ate(one.poses)
@@ -114,7 +134,7 @@ def trajectory_figures(seq, P, segment: int) -> dict:
 
 
 def run_world(name: str, args) -> tuple[dict, list]:
-    seq = make_world(name, args.frames, args.height, args.width, args.level)
+    seq = make_world(name, args.frames, args.height, args.width, args.level, args.resize)
     H, W = seq.image_size
     out, rows = {}, []
     prior = trajectory_figures(seq, np.asarray(seq.cam_to_world, np.float64), args.segment)
@@ -162,22 +182,25 @@ def main() -> None:
     ap.add_argument("--height", type=int, default=288)
     ap.add_argument("--width", type=int, default=384)
     ap.add_argument("--segment", type=int, default=SEGMENT)
-    ap.add_argument("--worlds", default="own,held_out")
+    ap.add_argument("--worlds", default="own,held_out,kitchen")
+    ap.add_argument("--resize", type=float, default=0.5, help="the kitchen's image scale (0.5: 320x240)")
     ap.add_argument("--level", default="moderate", choices=list(priors.NOISE_LEVELS))
     ap.add_argument("--chunks", type=int, default=4, help="chunks of the chunked comparison (0: none)")
     ap.add_argument("--chunk", type=int, default=40)
     ap.add_argument("--overlap", type=int, default=10)
-    ap.add_argument("--quick", action="store_true", help="30 frames at 48x64, own world only; 2 chunks of 16")
+    ap.add_argument("--quick", action="store_true", help="30 frames at 48x64, own world only; 2 chunks of 8")
     ap.add_argument("--json", default=None, metavar="PATH")
     args = ap.parse_args()
     worlds = [w for w in args.worlds.split(",") if w]
     if args.quick:
         args.frames, args.height, args.width, args.segment = 30, 48, 64, 10
-        args.chunks, args.chunk, args.overlap = min(args.chunks, 2), 16, 4
+        # chunks of 8: memory_config_for_chunks then gives config_for's own small config, so the
+        # chunks reuse the program the single sequence compiled
+        args.chunks, args.chunk, args.overlap = min(args.chunks, 2), 8, 2
         worlds = ["own"]
     for w in worlds:
-        if w not in ("own", "held_out"):
-            ap.error(f"--worlds: unknown world {w!r} (own, held_out)")
+        if w not in ("own", "held_out", "kitchen"):
+            ap.error(f"--worlds: unknown world {w!r} (own, held_out, kitchen)")
     if args.frames < 3 or args.segment < 3:
         ap.error("--frames and --segment must be >= 3")
     if args.chunks < 0 or args.chunks == 1 or (args.chunks and not 0 < args.overlap < args.chunk):
@@ -204,8 +227,8 @@ def main() -> None:
               f"windows dropped by the global graph {out[f'{w}_windows_dropped']}")
     if chunk_rows:
         n = args.chunk + (args.chunks - 1) * (args.chunk - args.overlap)
-        print(f"\nchunked: {args.chunks} chunks of {args.chunk} frames overlapping by {args.overlap} ({n} frames), "
-              "each with its own prior (scale, frame, noise); ATE Sim(3)-aligned\n")
+        print(f"\nchunked: chunks of {args.chunk} frames overlapping by {args.overlap} ({args.chunks} chunks, {n} "
+              "frames; the kitchen: all its frames), each with its own prior (scale, frame, noise); ATE Sim(3)-aligned\n")
         head = f"{'world':>9} | {'trajectory':<36} | {'ATE':>8}"
         print(head + "\n" + "-" * len(head))
         for name, label, v in chunk_rows:

@@ -306,28 +306,3 @@ def test_whole_trajectory_refinement_lowers_error_and_survives_a_bad_chunk(video
         leverage = float(np.sum(np.asarray(out.h_prior)) + np.sum(np.asarray(out.h_motion)))
     np.testing.assert_allclose(leverage, 6 * FRAMES, rtol=1e-6)
 
-
-def test_chunk_outputs_use_the_refined_chunk_poses(video):
-    """stitch_with_memory stitches each chunk's *refined* poses (issue 26): given per-chunk results whose
-    poses are the ground truth in each chunk's prior frame (a perfect refinement), the stitched video
-    is far closer to the ground truth than the stitched priors, which it reports beside it."""
-    from types import SimpleNamespace
-
-    from cm3d.solvers.umeyama import umeyama
-
-    chunks = chunks_at(video, "moderate")
-    gt = video[1].cam_to_world
-    ranges = stitch.chunk_layout(chunks, OVERLAP)[0]
-    fake = []
-    for c, (a, b) in zip(chunks, ranges):
-        # the truth moved into the chunk's prior frame (its scale and placement)
-        G = gt[a:b]
-        s, R, t = (np.asarray(v, np.float64) for v in umeyama(G[:, :3, 3], np.asarray(c.cam_to_world)[:, :3, 3]))
-        T = G.copy()
-        T[:, :3, :3] = R @ G[:, :3, :3]
-        T[:, :3, 3] = s * G[:, :3, 3] @ R.T + t
-        fake.append(SimpleNamespace(poses=T, masks=np.zeros(c.depth.shape, bool), windows=[], chained=None))
-    res = stitch.stitch_with_memory(chunks, OVERLAP, results=fake, refine=False)
-    e_out = float(metrics.ate(res.sequence.cam_to_world, gt))
-    e_prior = float(metrics.ate(res.refinement["poses_prior_stitched"], gt))
-    assert e_out < 0.2 * e_prior, (e_out, e_prior)

@@ -91,7 +91,7 @@ def stitch_with_memory(chunks, overlap: int | None = None, config: StitchConfig 
                        results=None, observe=None) -> StitchResult:
     """Stitch chunks with memory recall across them, then refine the whole trajectory.
 
-    Run every chunk with one memory bank; align consecutive chunks' refined poses on their shared frames; put loops
+    Run every chunk with one memory bank; align consecutive chunks on their shared frames; put loops
     and overlaps in the Sim(3) pose graph (inconsistent loops left out); place and fuse the chunks;
     ``refine``: :func:`cm3d.long_video.refine_frames`, kept when it passes its self-check.
     pipeline_config: None for :func:`memory_config_for_chunks`; bank: a bank to start from; progress:
@@ -110,19 +110,11 @@ def stitch_with_memory(chunks, overlap: int | None = None, config: StitchConfig 
     if results is None:
         bank, results = pipeline.run(list(chunks), cfg, bank, progress=progress, observe=observe)
     t_pipe = time.perf_counter() - t0
-    # stitch the chunks' *refined* poses (issue 26): each chunk's result is in its prior frame (the
-    # global graph of cm3d.pipeline.global_graph keeps it), so the overlaps align refined cameras
-    refined_chunks = [c.replace(cam_to_world=np.asarray(r.poses, c.cam_to_world.dtype)) for c, r in zip(chunks, results)]
-    A, G0, bounds = align_boundaries(refined_chunks, ranges, overlaps, config)
-    # the memory registered windows in their chained refined frames: re-expressed into the chunks' frames
-    chained_results = [r if getattr(r, "chained", None) is None else dataclasses.replace(r, poses=r.chained)
-                       for r in results]
-    loops = [loop_to_prior_frames(lc, refined_chunks, chained_results, config) for lc in recall_loops(results)]
+    A, G0, bounds = align_boundaries(chunks, ranges, overlaps, config)
+    loops = [loop_to_prior_frames(lc, chunks, results, config) for lc in recall_loops(results)]
     G, facts = sim3_pose_graph(G0, A, loops, graph)
-    seq, frame_chunk = merge_chunks(refined_chunks, ranges, overlaps, ts, G, "cm3d-memory")
-    chained, _ = merge_chunks(refined_chunks, ranges, overlaps, ts, G0, "cm3d-memory")
-    _, Gp, _ = align_boundaries(chunks, ranges, overlaps, config)  # the priors stitched alike (the baseline)
-    stitched_prior = merge_chunks(chunks, ranges, overlaps, ts, Gp, "cm3d-memory")[0].cam_to_world
+    seq, frame_chunk = merge_chunks(chunks, ranges, overlaps, ts, G, "cm3d-memory")
+    chained, _ = merge_chunks(chunks, ranges, overlaps, ts, G0, "cm3d-memory")
     stitched, frame_facts, kept = seq.cam_to_world, {"kept": False}, False
     if refine:
         static = np.ones(seq.depth.shape, bool)
@@ -135,7 +127,6 @@ def stitch_with_memory(chunks, overlap: int | None = None, config: StitchConfig 
         seq = seq.replace(cam_to_world=poses)
     facts = {**facts, "chained_transforms": G0, "pipeline_s": t_pipe, "windows": sum(len(r.windows) for r in results),
              "recalls": sum(int(w.accepted) for r in results for w in r.windows), "poses_stitched": stitched,
-             "poses_prior_stitched": stitched_prior,
              "frames": frame_facts}
     return StitchResult(sequence=seq, poses_aligned=chained.cam_to_world, poses_refined=seq.cam_to_world,
                         chunk_transforms=G, ranges=ranges, frame_chunk=frame_chunk, boundaries=bounds,
@@ -150,7 +141,7 @@ def memory_sequence_result(res: StitchResult, chunks):
 
     if res.method != "cm3d-memory":
         raise StitchError(f"res: expected a stitch_with_memory result, got method {res.method!r}")
-    prior = res.refinement.get("poses_prior_stitched", res.refinement.get("poses_stitched", res.poses_aligned))
+    prior = res.refinement.get("poses_stitched", res.poses_aligned)
     masks = np.zeros(res.sequence.depth.shape, bool)
     windows = []
     for k, ((a, b), r) in enumerate(zip(res.ranges, res.results)):
