@@ -305,4 +305,3 @@ def test_whole_trajectory_refinement_lowers_error_and_survives_a_bad_chunk(video
         out = solve_chain(g, jax.numpy.asarray(P))
         leverage = float(np.sum(np.asarray(out.h_prior)) + np.sum(np.asarray(out.h_motion)))
     np.testing.assert_allclose(leverage, 6 * FRAMES, rtol=1e-6)
-
