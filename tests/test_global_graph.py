@@ -11,6 +11,7 @@ from cm3d.eval import metrics
 from cm3d.pipeline.global_graph import GlobalGraphConfig, global_refine, pair_windows
 
 S, WIN = 100, 20  # five windows of 20 motions
+ON = GlobalGraphConfig(enabled=True)
 WINDOWS = [(WIN * k, min(S - 1, WIN * (k + 1))) for k in range(-(-(S - 1) // WIN))]
 
 
@@ -51,7 +52,7 @@ def test_longer_than_three_windows_beats_the_prior(case):
     """Five windows: the chained windows drift; the global graph ends well below the prior's ATE."""
     gt, prior, rel, noise = case
     X = chain(prior[0], rel @ noise)
-    out, facts = global_refine(prior, X, WINDOWS)
+    out, facts = global_refine(prior, X, WINDOWS, ON)
     assert facts["ran"] and facts["windows_dropped"] == 0 and len(WINDOWS) > 3
     a_prior, a_out = float(metrics.ate(prior, gt)), float(metrics.ate(out, gt))
     assert a_out < 0.5 * a_prior, (a_prior, a_out)
@@ -67,7 +68,7 @@ def test_corrupted_window_keeps_the_prior(case):
     bad = pose_errors(np.random.default_rng(11), S - 1, 3.0, 0.05, 0.0)
     k = np.arange(S - 1)
     M = np.where(((k >= 40) & (k < 60))[:, None, None], rel @ bad, rel @ noise)
-    out, facts = global_refine(prior, chain(prior[0], M), WINDOWS)
+    out, facts = global_refine(prior, chain(prior[0], M), WINDOWS, ON)
     assert facts["window_kept"] == [True, True, False, True, True]
     np.testing.assert_allclose(out[41:60], prior[41:60], atol=1e-4)  # only their priors constrain them
     assert np.abs(out[:40, :3, 3] - prior[:40, :3, 3]).max() > 1e-3  # refined elsewhere
@@ -93,12 +94,12 @@ def test_windows_that_agree_with_the_priors_keep_the_chain(case):
     gt, _, rel, noise = case
     prior = gt @ pose_errors(np.random.default_rng(3), S, 3.0, 0.03, 0.0)
     X = chain(prior[0], rel)
-    out, facts = global_refine(prior, X, WINDOWS)
+    out, facts = global_refine(prior, X, WINDOWS, ON)
     assert not facts["ran"] and facts["consistency_p"] > 0.01 and np.array_equal(out, X)
     k = np.arange(S - 1)
     kinked = rel.copy()
     kinked[(k >= 60) & (k < 80), :3, 3] *= 0.9
     Xk = chain(prior[0], kinked)
-    out, facts = global_refine(prior, Xk, WINDOWS)
+    out, facts = global_refine(prior, Xk, WINDOWS, ON)
     assert facts["ran"] and facts["consistency_p"] < 1e-3
     assert float(metrics.ate(out, gt)) < float(metrics.ate(Xk, gt))
