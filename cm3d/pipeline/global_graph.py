@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cm3d.long_video.frame_graph import _pad
 from cm3d.ops import robust, se3
 from cm3d.solvers import factors
 from cm3d.solvers.chain_pose_graph import solve_chain
@@ -67,14 +68,6 @@ class GlobalGraphConfig:
             raise ValueError(f"GlobalGraphConfig: vce_iterations, iterations, pad_frames >= 1 required, got {self}")
         if not (0 < self.outlier_quantile < 1 and 0 < self.window_quantile < 1 and 0 < self.consistency_p <= 1):
             raise ValueError(f"GlobalGraphConfig: quantiles in (0, 1) required, got {self}")
-
-
-def _pad(a, n: int, mode: str):
-    extra = n - a.shape[0]
-    if extra <= 0:
-        return a
-    fill = np.zeros((extra,) + a.shape[1:], a.dtype) if mode == "zeros" else np.repeat(a[-1:], extra, 0)
-    return np.concatenate([a, fill])
 
 
 def chain_graph(prior, measured, sigma_prior, sigma_motion, weight) -> FactorGraph:
