@@ -44,7 +44,6 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from cm3d import pipeline  # noqa: E402
-from cm3d.pipeline.global_graph import GlobalGraphConfig  # noqa: E402
 from cm3d.data import held_out_world, priors, synthetic  # noqa: E402
 from cm3d.eval import metrics  # noqa: E402
 from cm3d.outputs import write_json  # noqa: E402
@@ -141,7 +140,7 @@ def run_world(name: str, args) -> tuple[dict, list]:
     prior = trajectory_figures(seq, np.asarray(seq.cam_to_world, np.float64), args.segment)
     rows.append((name, "prior", prior, None))
     for mem in (True,) if args.quick else (False, True):
-        cfg = pipeline.config_for(H, W, use_memory=mem, global_graph=GlobalGraphConfig(enabled=True))
+        cfg = pipeline.config_for(H, W, use_memory=mem)
         t0 = time.perf_counter()
         _, (res,) = pipeline.run(seq, cfg)
         dt = time.perf_counter() - t0

@@ -33,12 +33,13 @@ def chain(start, motions):
 @pytest.fixture(scope="module")
 def case():
     """Ground truth, a VGGT-like prior (moderate: 3 deg / 3 cm jitter + drift) and the windows' chain:
-    accurate motions (0.1 deg / 2 mm) chained from the first prior pose, so its error adds up."""
+    accurate motions (0.3 deg / 6 mm) chained from the first prior pose, so its error adds up (far
+    enough, 0.009, for the consistency test to see it: p = 8e-5)."""
     rng = np.random.default_rng(7)
     gt = orbit(S)
     prior = gt @ pose_errors(rng, S, 3.0, 0.03)
     rel = np.linalg.inv(gt[:-1]) @ gt[1:]
-    noise = pose_errors(rng, S - 1, 0.1, 0.002, 0.0)
+    noise = pose_errors(rng, S - 1, 0.3, 0.006, 0.0)
     return gt, prior, rel, noise
 
 
