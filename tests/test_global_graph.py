@@ -104,3 +104,19 @@ def test_windows_that_agree_with_the_priors_keep_the_chain(case):
     out, facts = global_refine(prior, Xk, WINDOWS, ON)
     assert facts["ran"] and facts["consistency_p"] < 1e-3
     assert float(metrics.ate(out, gt)) < float(metrics.ate(Xk, gt))
+
+
+def test_one_broken_link_splits_its_window(case):
+    """One motion factor is grossly wrong (a jump in the video the flow could not follow: 0.3 m and
+    10 deg inside window 1): the solve alone would spread it over its neighbours, the check against
+    the priors' own relative motion drops it, and the rest of the window keeps its motions."""
+    gt, prior, rel, noise = case
+    M = rel @ noise
+    M[30] = M[30] @ np.asarray(pose_errors(np.random.default_rng(5), 2, 10.0, 0.3, 0.0)[1])
+    out, facts = global_refine(prior, chain(prior[0], M), WINDOWS, ON)
+    assert facts["ran"] and facts["motion_factors_used"] >= S - 1 - 11, facts
+    a_prior, a_out = float(metrics.ate(prior, gt)), float(metrics.ate(out, gt))
+    assert a_out < 0.5 * a_prior, (a_prior, a_out)
+    jump = np.linalg.inv(out[30]) @ out[31]
+    truth = np.linalg.inv(gt[30]) @ gt[31]
+    assert np.linalg.norm(jump[:3, 3] - truth[:3, 3]) < 0.1  # not the broken measurement's 0.3 m

@@ -21,7 +21,10 @@ a long sequence. :func:`global_refine` solves one pose graph over every frame in
   summed, above the ``window_quantile`` of χ²(6 (n − 1)) times the median window's misfit per
   degree of freedom when that is above 1 and there are 3 windows or more: the priors' noise is not
   white within a window) loses its motion factors: there the result is the prior; single motion
-  factors above ``χ²₆(outlier_quantile)`` are dropped too.
+  factors above ``χ²₆(outlier_quantile)``, in the solve or against the priors' own relative motion
+  (independent of the solve, which spreads a gross error over its neighbours), are dropped too, and
+  split their window: each run of frames still joined by motion factors is judged on its own, so
+  one broken link (a jump in the video) does not condemn the rest of its window.
 
 The chain is block-tridiagonal (:func:`cm3d.solvers.chain_pose_graph.solve_chain`, padded to a
 multiple of ``pad_frames`` frames: one compiled program for many lengths). Whether the result is
@@ -53,8 +56,8 @@ class GlobalGraphConfig:
     windows' agreement with the priors has a p-value below this (:func:`chain_consistency`; 1: always);
     vce_iterations: variance-estimation rounds;
     outlier_quantile: single motion factors above ``χ²₆(q)`` are dropped; window_quantile: a window
-    whose motion residuals exceed ``χ²_{6n}(q)`` keeps the prior; iterations: LM steps per solve;
-    pad_frames: the graph is padded to a multiple of this many frames."""
+    (or a run of it, see the module) whose motion residuals exceed ``χ²_{6n}(q)`` keeps the prior;
+    iterations: LM steps per solve; pad_frames: the graph is padded to a multiple of this many frames."""
 
     enabled: bool = True
     consistency_p: float = 0.01
@@ -96,6 +99,22 @@ def pair_windows(num_frames: int, windows) -> np.ndarray:
     out = -np.ones(max(num_frames - 1, 0), np.int64)
     for k, (a, b) in enumerate(windows):
         out[max(a, 0):max(min(b, num_frames - 1), 0)] = k
+    return out
+
+
+def _linked_runs(link, a: int, b: int):
+    """Maximal runs ``(first, last)`` of frames in ``[a, b]`` joined by consecutive ``link`` (S − 1,)
+    pairs (pair ``i`` joins frames ``i`` and ``i + 1``), two frames or more."""
+    out, i = [], a
+    while i < b:
+        if not link[i]:
+            i += 1
+            continue
+        j = i
+        while j < b and link[j]:
+            j += 1
+        out.append((i, j))
+        i = j
     return out
 
 
@@ -187,7 +206,7 @@ def global_refine(prior, poses, windows, cfg: GlobalGraphConfig = GlobalGraphCon
     if cons["p"] >= cfg.consistency_p and cfg.consistency_p < 1:
         return X.copy(), {**facts, "reason": f"the windows agree with the priors (p = {cons['p']:.3g})"}
     meas = np.linalg.inv(X[:-1]) @ X[1:]
-    win = pair_windows(S, windows)
+    local = np.asarray(se3.log(jnp.asarray(np.linalg.inv(meas) @ np.linalg.inv(P0[:-1]) @ P0[1:])), np.float64)
     N = -(-S // cfg.pad_frames) * cfg.pad_frames
     Pp, Mp = _pad(P0, N, "last"), _pad(meas, N - 1, "last")
     real = np.arange(N - 1) < S - 1
@@ -210,25 +229,32 @@ def global_refine(prior, poses, windows, cfg: GlobalGraphConfig = GlobalGraphCon
         sp_new, sm_new = _vce(rp, hp, frame_real, sp), _vce(rm, hm, w > 0, sm)
         e2 = np.sum((rm * sm / sm_new) ** 2, 1)  # whitened by the updated sigmas
         sp, sm = sp_new, sm_new
-        # windows whose refined shape the priors reject keep the prior
-        dof = np.zeros(nwin)
-        for k, (a, b) in enumerate(windows):
-            n = min(b, S - 1) - a + 1
-            if n < 2:
-                continue
+        # a window's runs of frames joined by usable motion factors (a single outlier factor, e.g. a
+        # jump in the video, splits its window instead of condemning the rest); runs whose refined
+        # shape the priors reject keep the prior
+        # each motion factor against the priors' own relative motion too (independent of the solve,
+        # which spreads a gross error over its neighbours): ``|log(M_i⁻¹ P_i⁻¹ P_{i+1})|`` whitened by
+        # ``√(2 σ_p² + σ_m²)``
+        link = real & (w > 0) & (e2 <= lim1) & (_pad(np.sum((local / np.sqrt(2 * sp ** 2 + sm ** 2)) ** 2, 1),
+                                                     N - 1, "last") <= lim1)
+        runs = [(k, a, b) for k, (a0, b0) in enumerate(windows) for a, b in _linked_runs(link, a0, min(b0, S - 1))]
+        mis, dof = np.zeros(len(runs)), np.zeros(len(runs))
+        for m, (k, a, b) in enumerate(runs):
+            n = b - a + 1
             pad = -(-n // 8) * 8
             sel = np.minimum(np.arange(a, a + pad), S - 1)
-            misfit[k] = float(window_misfit(jnp.asarray(P0[sel]), jnp.asarray(X[sel]),
-                                            jnp.asarray((np.arange(pad) < n).astype(P0.dtype)), jnp.asarray(sp),
-                                            lim1))
-            dof[k] = 6 * (n - 1)
-        # the typical window sets the unit (the priors' noise is not white within a window: drift)
-        has = dof > 0
-        unit = max(1.0, float(np.median(misfit[has] / dof[has]))) if np.sum(has) >= 3 else 1.0
-        for k in np.flatnonzero(has):
-            dropped[k] |= misfit[k] > unit * float(robust.chi2_quantile(cfg.window_quantile, dof[k]))
-        w = np.where(real & (e2 <= lim1), w, 0.0)
-        w[: S - 1][np.isin(win, np.flatnonzero(dropped))] = 0.0
+            mis[m] = float(window_misfit(jnp.asarray(P0[sel]), jnp.asarray(X[sel]),
+                                         jnp.asarray((np.arange(pad) < n).astype(P0.dtype)), jnp.asarray(sp), lim1))
+            dof[m] = 6 * (n - 1)
+        # the typical run sets the unit (the priors' noise is not white within a window: drift)
+        unit = max(1.0, float(np.median(mis / dof))) if len(runs) >= 3 else 1.0
+        misfit = np.zeros(nwin)
+        for m, (k, a, b) in enumerate(runs):
+            misfit[k] += mis[m]
+            if mis[m] > unit * float(robust.chi2_quantile(cfg.window_quantile, dof[m])):
+                link[a:b] = False
+                dropped[k] = True
+        w = np.where(link, w, 0.0)
     out = np.asarray(sol.poses, np.float64)[:S]
     if not np.all(np.isfinite(out)):
         return X.copy(), {**facts, "reason": "non-finite solution"}
