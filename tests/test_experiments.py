@@ -11,6 +11,8 @@ ROOT = Path(__file__).resolve().parents[1]
 COVERED_ELSEWHERE = {
     "sweep.py": "tests/test_sweep.py runs it with --quick --json and checks its figures",
     "bench_motion.py": "bench_all.py --quick runs it with --quick --json and fails when it fails",
+    "bench_rerun.py": "tests/test_rerun.py::test_bench_rerun_quick_in_the_demos_process runs its main --quick "
+                      "--json after the demo compiled the same pipeline",
     "sensor_holes.py": "tests/test_reliability.py::test_hole_heavy_depth_refines runs its --quick case (scene 5, "
                        "48x64, blobs) through the same pipeline.run",
 }

@@ -101,6 +101,26 @@ def test_view_without_a_display_says_how(demo, monkeypatch, capsys):
     assert "is a folder" in capsys.readouterr().err
 
 
+def test_bench_rerun_quick_in_the_demos_process(demo, tmp_path):
+    """``experiments/bench_rerun.py --quick`` (its smoke test, see test_experiments.COVERED_ELSEWHERE),
+    run in this process after the module's demo compiled the same 48x64 pipeline and recorder: a
+    separate process would compile everything again (100 s of the suite)."""
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "experiments" / "bench_rerun.py"
+    spec = importlib.util.spec_from_file_location("bench_rerun", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    out = tmp_path / "figures.json"
+    got = bench.main(["--quick", "--json", str(out)])
+    figures = json.loads(out.read_text())
+    assert set(figures) == set(got) and all(not isinstance(v, (dict, list)) for v in figures.values())
+    assert figures["plain_s"] > 0 and figures["recorded_s"] > 0 and figures["rrd_mb"] > 0
+    assert np.isfinite(figures["overhead_pct"]) and figures["quick"]
+
+
 def test_a_chunked_video_is_one_timeline_with_its_chunks(tmp_path):
     """``cm3d run CHUNKS.npz --rerun``: the stitched video's 8 frames on one timeline, each chunk's
     placed prior as its own strip, the chunk boundary in the log (2 chunks of 5 frames sharing 2, the
