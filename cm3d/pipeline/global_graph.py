@@ -229,12 +229,11 @@ def global_refine(prior, poses, windows, cfg: GlobalGraphConfig = GlobalGraphCon
         sp_new, sm_new = _vce(rp, hp, frame_real, sp), _vce(rm, hm, w > 0, sm)
         e2 = np.sum((rm * sm / sm_new) ** 2, 1)  # whitened by the updated sigmas
         sp, sm = sp_new, sm_new
-        # a window's runs of frames joined by usable motion factors (a single outlier factor, e.g. a
-        # jump in the video, splits its window instead of condemning the rest); runs whose refined
-        # shape the priors reject keep the prior
-        # each motion factor against the priors' own relative motion too (independent of the solve,
-        # which spreads a gross error over its neighbours): ``|log(M_i⁻¹ P_i⁻¹ P_{i+1})|`` whitened by
-        # ``√(2 σ_p² + σ_m²)``
+        # usable motion factors: within χ²₆ in the solve and against the priors' own relative motion
+        # ``|log(M_i⁻¹ P_i⁻¹ P_{i+1})|`` whitened by ``√(2 σ_p² + σ_m²)`` (independent of the solve,
+        # which spreads a gross error over its neighbours). A dropped factor (e.g. a jump in the
+        # video) splits its window; each run of linked frames whose shape the priors reject keeps
+        # the prior.
         link = real & (w > 0) & (e2 <= lim1) & (_pad(np.sum((local / np.sqrt(2 * sp ** 2 + sm ** 2)) ** 2, 1),
                                                      N - 1, "last") <= lim1)
         runs = [(k, a, b) for k, (a0, b0) in enumerate(windows) for a, b in _linked_runs(link, a0, min(b0, S - 1))]
