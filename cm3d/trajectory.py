@@ -66,6 +66,12 @@ class RefineConfig:
 
     gate: keep the prior poses unless a likelihood-ratio test (poses held at the prior, landmarks
     re-estimated, against the refined poses) gives ``2 ΔC > χ²_q(6 (S − 1))``; gate_quantile: q.
+    depth_factors: the pipeline's windows attach the prior depth at every observation
+    (:attr:`Observations.depth`), which adds depth factors (RGB-D style): their log std
+    starts at ``depth_sigma_init`` (loose); after each solve but the last, each frame's depth scale
+    and the log std are re-fitted to the inliers (:func:`cm3d.solvers.factors.calibrate_depth`), the
+    std at least ``depth_sigma_floor``; depth_edge_ratio: no depth is attached on a depth edge (the
+    pixel's 3x3 neighbourhood spans a larger max / min ratio).
     """
 
     graph: factors.GraphConfig = factors.GraphConfig()
@@ -74,6 +80,10 @@ class RefineConfig:
     rounds: int = 2
     gate: bool = True
     gate_quantile: float = 0.99
+    depth_factors: bool = True
+    depth_sigma_init: float = 0.05
+    depth_sigma_floor: float = 0.002
+    depth_edge_ratio: float = 1.15
 
 
 @struct.dataclass
@@ -90,13 +100,14 @@ class Tracks:
 @struct.dataclass
 class Observations:
     """Padded projection observations: pose_idx, point_idx (K,) int32, uv (K, 2), valid (K,) bool,
-    memory (K,) bool."""
+    memory (K,) bool; depth: optional (K,) measured depth at the observation (0 = none)."""
 
     pose_idx: jnp.ndarray
     point_idx: jnp.ndarray
     uv: jnp.ndarray
     valid: jnp.ndarray
     memory: jnp.ndarray
+    depth: jnp.ndarray | None = None
 
 
 def keyframes(num_frames: int, cfg: TrackConfig) -> jnp.ndarray:
@@ -406,7 +417,8 @@ def refine_trajectory(prior_poses, intrinsics, points, obs: Observations,
     returned as ``Refinement.alignment``.
     """
     graph = factors.build_graph(prior_poses, intrinsics, obs.pose_idx, obs.point_idx, obs.uv,
-                                obs.valid, obs.memory, pose_valid, cfg.graph)
+                                obs.valid, obs.memory, pose_valid, cfg.graph, obs.depth,
+                                None if obs.depth is None else cfg.depth_sigma_init)
     L = points.shape[0]
     if memory is not None:  # the same pytree structure in every stage of the scan: empty priors first
         graph = factors.with_point_prior(graph, jnp.zeros_like(points), jnp.zeros((L, 3, 3), points.dtype),
@@ -425,6 +437,8 @@ def refine_trajectory(prior_poses, intrinsics, points, obs: Observations,
         res = lm.solve(g, init, cfg.solver)
         reject = k < rounds - 1
         g2, inl2, tau2 = factors.reject_outliers(graph, res.params, cfg.outliers)
+        if obs.depth is not None:  # the depth factors' per-frame scale and noise from this solve's inliers
+            g2 = factors.calibrate_depth(g2, res.params, inl2, cfg.depth_sigma_floor)
         A2 = align
         if memory is not None:  # associate once, after the first solve (lax.cond: skipped in the other stages)
             def attach(g2):

@@ -25,15 +25,29 @@ def problem():
         yield graph, Variables(poses, init.points), truth
 
 
+def _with_depth(graph, truth):
+    """The problem's graph with measured depths: the true camera z times 2 % log-normal noise on
+    three quarters of the observations (0 = none on the rest), some memory-scaled."""
+    f = graph.projection
+    rng = np.random.default_rng(2)
+    _, z = factors.project(truth.poses[f.pose_idx], truth.points[f.point_idx], graph.intrinsics[f.pose_idx])
+    d = np.asarray(z) * np.exp(rng.normal(0, 0.02, z.shape)) * (rng.random(z.shape) < 0.75)
+    mem = jnp.asarray(rng.random(z.shape) < 0.3)
+    return graph.replace(projection=f.replace(depth=jnp.asarray(d), depth_sigma=jnp.full(z.shape, 0.02), memory=mem))
+
+
 def _perturbed_residual(graph, x, dp, dl):
     x2 = Variables(x.poses @ se3.exp(dp), x.points + dl)
     e, _ = factors.projection_residual(graph, x2)
     return e
 
 
-def test_projection_jacobians_match_autodiff_and_finite_differences(problem):
-    graph, x, _ = problem
+@pytest.mark.parametrize("depth", [False, True], ids=["pixels", "pixels+depth"])
+def test_projection_jacobians_match_autodiff_and_finite_differences(problem, depth):
+    graph, x, truth = problem
     with jax.enable_x64(True):
+        if depth:
+            graph = _with_depth(graph, truth)
         e, A, B, front = jax.jit(factors.projection_linearize, compiler_options=FAST)(graph, x)
         e_ref, _ = jax.jit(factors.projection_residual, compiler_options=FAST)(graph, x)
         np.testing.assert_allclose(e, e_ref, rtol=1e-12, atol=1e-12)
@@ -52,6 +66,55 @@ def test_projection_jacobians_match_autodiff_and_finite_differences(problem):
         fd = (res(graph, x, h * dp, h * dl) - res(graph, x, -h * dp, -h * dl)) / (2 * h)
         lin = jnp.einsum("kri,ki->kr", A, dp[f.pose_idx]) + jnp.einsum("kri,ki->kr", B, dl[f.point_idx])
         np.testing.assert_allclose(lin, fd, rtol=1e-5, atol=1e-5)
+        assert e.shape == (f.pose_idx.shape[0], 3 if depth else 2)
+        if depth:  # the depth row against its definition
+            _, z = factors.project(x.poses[f.pose_idx], x.points[f.point_idx], graph.intrinsics[f.pose_idx])
+            sd = 0.02 * np.where(np.asarray(f.memory), np.sqrt(float(graph.memory_alpha)), 1.0)
+            want = np.where(np.asarray(f.depth) > 0, (np.log(np.asarray(z)) - np.log(np.where(f.depth > 0, f.depth, 1.0))) / sd, 0.0)
+            np.testing.assert_allclose(e[:, 2], want, rtol=1e-10, atol=1e-10)
+
+
+def test_depth_factors_fix_the_scale_and_noise_estimate(problem):
+    """With measured depths the solve recovers the depth's scale (the reprojection factors leave it
+    free up to the weak motion factors); :func:`factors.calibrate_depth` recovers the 2 % noise and
+    removes per-frame depth scales while keeping the frames' common one."""
+    from cm3d.solvers import lm
+
+    graph, x, truth = problem
+    with jax.enable_x64(True):
+        g = _with_depth(graph, truth)
+        f = g.projection
+        inl = f.weight > 0
+        frame_scale = jnp.exp(jnp.asarray(np.random.default_rng(3).normal(0, 0.05, g.num_poses)))
+        bad = g.replace(projection=f.replace(depth=f.depth * 1.3 * frame_scale[f.pose_idx]))
+        cal = jax.jit(factors.calibrate_depth, static_argnums=3)(bad, truth, inl, 1e-4).projection
+        # the reference in NumPy: per-frame low-median log ratio, centred on the frames' median;
+        # sigma = max(white noise, the frames' scatter x sqrt(observations))
+        _, z = factors.project(truth.poses[f.pose_idx], truth.points[f.point_idx], g.intrinsics[f.pose_idx])
+        d, pi = np.asarray(bad.projection.depth), np.asarray(f.pose_idx)
+        ok = np.asarray(inl) & (d > 0)
+        r = np.where(ok, np.log(np.asarray(z)) - np.log(np.where(ok, d, 1.0)), 0.0)
+        n = np.bincount(pi[ok], minlength=g.num_poses)
+        sc = np.array([np.sort(r[ok & (pi == i)])[(n[i] - 1) // 2] for i in range(g.num_poses)])
+        sc -= np.median(sc)
+        white = 1.4826 * np.median(np.abs((r - sc[pi])[ok] - np.median((r - sc[pi])[ok])))
+        assert 0.015 < white < 0.025, white  # the 2 % noise, with the frame scales removed
+        frame = 1.4826 * np.median(np.abs(sc - np.median(sc))) * np.sqrt(n)
+        np.testing.assert_allclose(cal.depth_sigma, np.maximum(white, frame)[pi], rtol=1e-6)
+        assert np.all(np.asarray(cal.depth_sigma) > 0.05 * 2)  # 5 % frame scatter outweighs the noise
+        np.testing.assert_allclose(cal.depth, d * np.exp(sc)[pi], rtol=1e-6)
+        ratio = np.asarray(cal.depth / jnp.where(f.depth > 0, f.depth, 1.0))[np.asarray(f.depth) > 0]
+        assert np.std(np.log(ratio)) < 0.01 and abs(np.median(ratio) - 1.3) < 0.05
+        # start at 0.8x the true scale (about pose 0): the depths pull it back, pixels alone cannot
+        c0 = truth.poses[0, :3, 3]
+        small = Variables(truth.poses.at[:, :3, 3].set(c0 + 0.8 * (truth.poses[:, :3, 3] - c0)),
+                          c0 + 0.8 * (truth.points - c0))
+        g = g.replace(motion=g.motion.replace(weight=jnp.zeros_like(g.motion.weight)))
+        opts = lm.LMOptions(backward="none", max_iterations=60)
+        res = jax.jit(lambda g, x: lm.solve(g, x, opts), compiler_options=FAST)(g, small)
+        d_true = np.linalg.norm(np.asarray(truth.poses[1:, :3, 3] - c0), axis=1)
+        d_fit = np.linalg.norm(np.asarray(res.params.poses[1:, :3, 3] - res.params.poses[0, :3, 3]), axis=1)
+        assert abs(np.median(d_fit / d_true) - 1.0) < 0.03
 
 
 def test_pose_factor_jacobians_analytic_equal_autodiff_and_fd(problem):

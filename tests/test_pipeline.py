@@ -173,6 +173,27 @@ def test_rescale_window_undoes_a_shrunk_window():
     np.testing.assert_allclose(same, init, atol=1e-6)
 
 
+def test_observed_depth_skips_holes_edges_and_invalid_observations():
+    """The window's depth factors measure the prior depth at the observation's pixel, except where it
+    is not a measurement of the tracked point: a sensor hole (confidence 0), a depth edge, padding."""
+    import types
+
+    from cm3d import trajectory
+    from cm3d.pipeline.window import observed_depth
+
+    depth = np.full((2, 8, 8), 2.0, np.float32)
+    depth[1, :, 5:] = 4.0  # an edge between columns 4 and 5 of slot 1
+    conf = np.ones_like(depth)
+    conf[0, 2, 2] = 0.0  # a hole in slot 0
+    win = types.SimpleNamespace(depth=jnp.asarray(depth), conf=jnp.asarray(conf))
+    uv = jnp.asarray([[1.0, 1.0], [2.1, 1.9], [1.0, 1.0], [4.0, 3.0], [6.6, 3.0], [1.0, 1.0]], jnp.float32)
+    obs = trajectory.Observations(pose_idx=jnp.asarray([0, 0, 1, 1, 1, 1], jnp.int32), point_idx=jnp.zeros(6, jnp.int32),
+                                  uv=uv, valid=jnp.asarray([True, True, True, True, True, False]),
+                                  memory=jnp.zeros(6, bool))
+    d = np.asarray(observed_depth(win, obs, 1.15))
+    np.testing.assert_array_equal(d, [2.0, 0.0, 2.0, 0.0, 4.0, 0.0])
+
+
 # ----------------------------------------------------------------------------------------------
 # Issue #7 defect: exact priors must stay exact on tiny sequences (dynamic landmarks the estimated
 # mask misses, and a gate whose null-hypothesis solve did not converge, made them worse)

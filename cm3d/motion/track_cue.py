@@ -11,20 +11,8 @@ import jax.numpy as jnp
 
 from cm3d.motion.frames import MotionConfig
 from cm3d.ops import robust, se3
-from cm3d.ops.robust import masked_median_low
+from cm3d.ops.robust import masked_median_low, segment_median  # noqa: F401 (re-exported)
 from cm3d.solvers.camera_motion import fit_camera_motion, reprojection
-
-
-def segment_median(x, group, valid, num_groups: int):
-    """Per-group median (lower middle value) of ``x[valid]`` (K,) by ``group`` (K,) int in
-    [0, num_groups): (num_groups,), 0 for an empty group. One sort, fixed shapes."""
-    g = jnp.where(valid, group, num_groups)
-    order = jnp.lexsort((jnp.where(valid, x, jnp.inf), g))
-    xs = x[order]
-    count = jax.ops.segment_sum(valid.astype(jnp.int32), group, num_groups)
-    start = jnp.cumsum(count) - count
-    med = xs[jnp.clip(start + (count - 1) // 2, 0, x.shape[0] - 1)]
-    return jnp.where(count > 0, med, 0.0)
 
 
 def track_residuals(points, poses, intrinsics, pose_idx, uv, valid, block, num_blocks: int,

@@ -84,3 +84,15 @@ def chi2_quantile(q, dof):
     z = jax.scipy.special.ndtri(jnp.asarray(q, jnp.result_type(float)))
     k = jnp.maximum(jnp.asarray(dof, z.dtype), 1.0)
     return k * (1.0 - 2.0 / (9.0 * k) + z * jnp.sqrt(2.0 / (9.0 * k))) ** 3
+
+
+def segment_median(x, group, valid, num_groups: int):
+    """Per-group median (lower middle value) of ``x[valid]`` (K,) by ``group`` (K,) int in
+    [0, num_groups): (num_groups,), 0 for an empty group. One sort, fixed shapes."""
+    g = jnp.where(valid, group, num_groups)
+    order = jnp.lexsort((jnp.where(valid, x, jnp.inf), g))
+    xs = x[order]
+    count = jax.ops.segment_sum(valid.astype(jnp.int32), group, num_groups)
+    start = jnp.cumsum(count) - count
+    med = xs[jnp.clip(start + (count - 1) // 2, 0, x.shape[0] - 1)]
+    return jnp.where(count > 0, med, 0.0)

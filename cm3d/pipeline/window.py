@@ -13,7 +13,7 @@ from cm3d import trajectory
 from cm3d.motion import moving_tracks
 from cm3d.ops import robust
 from cm3d.pipeline.config import PipelineConfig
-from cm3d.pipeline.landmarks import landmark_observations
+from cm3d.pipeline.landmarks import landmark_observations, nearest_pixel
 from cm3d.pipeline.state import Landmarks, Window
 from cm3d.solvers import factors
 
@@ -133,8 +133,10 @@ def gate_refinement(win: Window, points0, obs: trajectory.Observations, ref: tra
     rc = cfg.refine
     if not rc.gate:
         return ref.replace(refined=jnp.ones((), bool))
+    gp = ref.graph.projection if ref.graph is not None else None
     g = factors.build_graph(win.poses, win.intrinsic, obs.pose_idx, obs.point_idx, obs.uv, ref.inlier,
-                            ref.graph.projection.memory if ref.graph is not None else obs.memory, win.valid, rc.graph)
+                            gp.memory if gp is not None else obs.memory, win.valid, rc.graph,
+                            None if gp is None else gp.depth, None if gp is None else gp.depth_sigma)
     if ref.graph is not None and ref.graph.point_prior is not None:  # both hypotheses see the remembered surface
         g = g.replace(point_prior=ref.graph.point_prior)
     cost0, points_fixed = structure_only_cost(g, win.poses, points0, min_observations=rc.solver.min_observations)
@@ -161,6 +163,21 @@ def rescale_window(poses, points, init_poses, init_points, seed, valid):
     return poses.at[:, :3, 3].set(c0 + (poses[:, :3, 3] - c0) / r), c0 + (points - c0) / r
 
 
+def observed_depth(win: Window, obs: trajectory.Observations, max_ratio: float):
+    """The prior depth (K,) at every observation's nearest pixel of its slot, 0 where the depth is
+    not a measurement of the tracked point: confidence 0 (e.g. a filled sensor hole), a depth edge
+    (the 3x3 neighbourhood's max / min above ``max_ratio``: a pixel off there lands on the other
+    surface) or an invalid observation."""
+    h, w = win.depth.shape[1:]
+    r, c = nearest_pixel(obs.uv, h, w)
+    lo = jax.lax.reduce_window(win.depth, jnp.inf, jax.lax.min, (1, 3, 3), (1, 1, 1), "SAME")
+    hi = jax.lax.reduce_window(win.depth, -jnp.inf, jax.lax.max, (1, 3, 3), (1, 1, 1), "SAME")
+    i = obs.pose_idx
+    d = win.depth[i, r, c]
+    ok = obs.valid & (win.conf[i, r, c] > 0) & (lo[i, r, c] > 0) & (hi[i, r, c] < max_ratio * lo[i, r, c])
+    return jnp.where(ok, d, 0.0)
+
+
 def factor_graph(win: Window, lm_: Landmarks, cfg: PipelineConfig):
     """The window's factor graph without memory: prior check (:func:`prior_consistent_tracks`), track cue
     (:func:`cm3d.motion.moving_tracks`), LM with outlier rejection, the gate, the depth-scale gauge.
@@ -172,6 +189,8 @@ def factor_graph(win: Window, lm_: Landmarks, cfg: PipelineConfig):
     first = first & ~moving_tracks(lm_.points, win.poses, win.intrinsic, obs.pose_idx, obs.uv, obs.valid,
                                    lm_.seed // cfg.track.keyframe_every, cfg.seed_blocks, cfg.motion)
     obs = obs.replace(valid=obs.valid & jnp.repeat(first, T))
+    if cfg.refine.depth_factors:
+        obs = obs.replace(depth=observed_depth(win, obs, cfg.refine.depth_edge_ratio))
     ungated = dataclasses.replace(cfg.refine, gate=False)
     ref = trajectory.refine_trajectory(win.poses, win.intrinsic, lm_.points, obs, ungated, pose_valid=win.valid,
                                        memory=None, assoc=cfg.assoc, realign=False)

@@ -46,6 +46,9 @@ class ProjectionFactors:
     pose_idx, point_idx: (K,) int32; z: (K, 2) observed pixel ``(u, v)``; sigma: (K,) isotropic
     pixel std; weight: (K,) >= 0 multiplier of the robust cost (0 = padding / rejected);
     memory: (K,) bool, landmark recalled from memory (its σ² is scaled by the graph's α).
+    depth: optional (K,) measured camera depth of the observation (RGB-D style; 0 = none): a third
+    residual row ``(log z − log depth) / depth_sigma``, in the same robust kernel; depth_sigma: (K,)
+    std of log depth (relative depth noise), also scaled by α for memory landmarks.
     """
 
     pose_idx: jnp.ndarray
@@ -54,6 +57,8 @@ class ProjectionFactors:
     sigma: jnp.ndarray
     weight: jnp.ndarray
     memory: jnp.ndarray
+    depth: jnp.ndarray | None = None
+    depth_sigma: jnp.ndarray | None = None
 
 
 @struct.dataclass
@@ -188,21 +193,37 @@ def project(poses, points, K):
     return uvw[..., :2] / zs[..., None], z
 
 
+def _depth_rows(graph: FactorGraph, z, front):
+    """The depth factors' whitened log-depth residual (K,), its scale ``1 / (z σ_d)`` for the
+    Jacobian (K,) (0 where there is no measured depth or the point is behind the camera)."""
+    f = graph.projection
+    alpha = jnp.asarray(graph.memory_alpha, z.dtype)
+    sd = f.depth_sigma * jnp.where(f.memory, jnp.sqrt(alpha), 1.0)
+    has = front & (f.depth > MIN_DEPTH)
+    zs = jnp.where(has, z, 1.0)
+    r = jnp.where(has, (jnp.log(zs) - jnp.log(jnp.where(has, f.depth, 1.0))) / sd, 0.0)
+    return r, jnp.where(has, 1.0 / (zs * sd), 0.0)
+
+
 def projection_residual(graph: FactorGraph, x: Variables):
     """Whitened reprojection residuals (K, 2) and cheirality validity (K,); behind the camera the
-    residual is the constant ``2 f_x / σ`` with zero derivative (GTSAM's convention)."""
+    residual is the constant ``2 f_x / σ`` with zero derivative (GTSAM's convention). With measured
+    depths (:class:`ProjectionFactors`) the residual is (K, 3): the log-depth row last."""
     f = graph.projection
     T = x.poses[f.pose_idx]
     K = graph.intrinsics[f.pose_idx]
     uv, z = project(T, x.points[f.point_idx], K)
     sig = effective_sigma(graph)
     front = z > MIN_DEPTH
-    r = jnp.where(front[:, None], uv - f.z, 2.0 * K[:, 0, 0][:, None])
-    return r / sig[:, None], front
+    r = jnp.where(front[:, None], uv - f.z, 2.0 * K[:, 0, 0][:, None]) / sig[:, None]
+    if f.depth is not None:
+        r = jnp.concatenate([r, _depth_rows(graph, z, front)[0][:, None]], -1)
+    return r, front
 
 
 def projection_linearize(graph: FactorGraph, x: Variables):
-    """Whitened residuals e (K, 2) and analytic Jacobians A = de/dξ_pose (K, 2, 6), B = de/dL (K, 2, 3).
+    """Whitened residuals e (K, 2) and analytic Jacobians A = de/dξ_pose (K, 2, 6), B = de/dL (K, 2, 3)
+    (three rows each with measured depths).
 
     With ``p_c = R^T (L − t)``: ``dp_c/dξ = [−I, [p_c]×]`` (right perturbation ``T exp(ξ)``,
     translation first), ``dp_c/dL = R^T``, ``duv/dp_c = (K_{:2} − uv e_3^T) / z``.
@@ -223,6 +244,10 @@ def projection_linearize(graph: FactorGraph, x: Variables):
     e3 = jnp.array([0.0, 0.0, 1.0], pc.dtype)
     P = (K[:, :2, :] - uv[:, :, None] * e3) / zs[:, None, None]  # (K, 2, 3)
     P = P * (jnp.where(front, inv_s, 0.0))[:, None, None]
+    if f.depth is not None:  # d log z / d p_c = e_3ᵀ / z
+        rd, sc = _depth_rows(graph, z, front)
+        e = jnp.concatenate([e, rd[:, None]], -1)
+        P = jnp.concatenate([P, (sc[:, None] * e3)[:, None, :]], 1)
     A = jnp.concatenate([-P, mm(P, _skew(pc))], -1)
     B = mm(P, jnp.swapaxes(R, -1, -2))
     return e, A, B, front
@@ -431,14 +456,15 @@ def _tangent_sigma(rot, trans, n, dtype):
 
 
 def build_graph(init_poses, intrinsics, pose_idx, point_idx, uv, valid, memory=None,
-                pose_valid=None, cfg: GraphConfig = GraphConfig()) -> FactorGraph:
+                pose_valid=None, cfg: GraphConfig = GraphConfig(), depth=None, depth_sigma=None) -> FactorGraph:
     """The paper's graph from initial poses and padded observations.
 
     init_poses: (N, 4, 4) T^0 (prior poses); intrinsics: (N, 3, 3); pose_idx, point_idx: (K,);
     uv: (K, 2) observed pixels; valid: (K,) bool or weights; memory: (K,) bool (landmark recalled
     from memory: ``Σ_proj ← α Σ_proj``); pose_valid: (N,) bool, padded pose slots get no motion
     factors. One prior on pose 0 (``T_0 ⊖ T_0^init``), motion factors between the valid pose pairs
-    of ``cfg.motion_pairs`` (default: consecutive poses) from ``T_a^{0 -1} T_b^0``.
+    of ``cfg.motion_pairs`` (default: consecutive poses) from ``T_a^{0 -1} T_b^0``. depth: optional
+    (K,) measured depth per observation (0 = none) with depth_sigma (scalar or (K,)) its log std.
     Jittable; gradients flow to every float input.
     """
     init_poses = jnp.asarray(init_poses)
@@ -452,6 +478,10 @@ def build_graph(init_poses, intrinsics, pose_idx, point_idx, uv, valid, memory=N
     proj = ProjectionFactors(
         pose_idx=jnp.asarray(pose_idx, jnp.int32), point_idx=jnp.asarray(point_idx, jnp.int32),
         z=jnp.asarray(uv, dt), sigma=jnp.full(Kn, cfg.sigma_proj, dt), weight=weight, memory=memory)
+    if depth is not None:
+        if depth_sigma is None:
+            raise ValueError("build_graph: depth needs depth_sigma (the log-depth std)")
+        proj = proj.replace(depth=jnp.asarray(depth, dt), depth_sigma=jnp.broadcast_to(jnp.asarray(depth_sigma, dt), (Kn,)))
     prior = PriorFactors(
         pose_idx=jnp.zeros(1, jnp.int32), target=init_poses[:1],
         sigma=_tangent_sigma(cfg.prior_sigma_rot, cfg.prior_sigma_trans, 1, dt),
@@ -511,6 +541,39 @@ def reject_outliers(graph: FactorGraph, x: Variables, cfg: OutlierConfig = Outli
     inlier = valid & (err <= tau)
     proj = f.replace(weight=jnp.where(inlier, f.weight, 0.0))
     return graph.replace(projection=proj), inlier, tau
+
+
+def calibrate_depth(graph: FactorGraph, x: Variables, inlier, floor: float) -> FactorGraph:
+    """The depth factors re-fitted to the solution ``x`` from its ``inlier`` (K,) observations.
+
+    * **Per-frame scale.** Each frame's depths are rescaled by its median ratio ``z / depth``
+      relative to the median frame's. A per-frame depth scale is common in predicted depth (VGGT's),
+      and independent per-observation factors cannot absorb it: they would move the camera along
+      its axis instead. The frames' common scale stays the depths'.
+    * **Noise.** The log-depth residuals are not independent within a frame: the per-frame scales
+      ``s_i`` scatter by ``σ_s`` (robust, over the frames), far more than ``n_i`` independent
+      observations of noise ``σ_w`` (the rescaled residuals' robust std) would let their median
+      scatter. What the rescaling removes is one of a frame's correlated errors (a tilt or a smooth
+      bias remains, of the same order), so a frame's ``n_i`` depth factors are weighted to carry
+      one measurement of std ``σ_s`` together: ``depth_sigma = max(σ_w, σ_s √n_i, floor)``.
+
+    Frames with fewer than 8 such observations keep their depths; with fewer than 8 frames'
+    worth in all, the sigmas stay as they were."""
+    f = graph.projection
+    N = graph.intrinsics.shape[0]
+    _, z = project(x.poses[f.pose_idx], x.points[f.point_idx], graph.intrinsics[f.pose_idx])
+    ok = inlier & (f.depth > MIN_DEPTH) & (z > MIN_DEPTH)
+    r = jnp.where(ok, jnp.log(jnp.where(ok, z, 1.0)) - jnp.log(jnp.where(ok, f.depth, 1.0)), 0.0)
+    n = jax.ops.segment_sum(ok.astype(jnp.int32), f.pose_idx, N)
+    s = robust.segment_median(r, f.pose_idx, ok, N)
+    has = n >= 8
+    s = jnp.where(has, s - robust.masked_median(s, has), 0.0)
+    depth = f.depth * jnp.exp(s)[f.pose_idx]
+    white = robust.mad_sigma(r - s[f.pose_idx], ok)
+    frame = robust.mad_sigma(s, has) * jnp.sqrt(n.astype(r.dtype))
+    sig = jnp.maximum(jnp.maximum(white, frame[f.pose_idx]), floor)
+    sig = jnp.where((jnp.sum(ok) >= 8) & (jnp.sum(has) >= 3), sig, f.depth_sigma)
+    return graph.replace(projection=f.replace(depth=depth.astype(f.depth.dtype), depth_sigma=sig.astype(f.depth_sigma.dtype)))
 
 
 # A seeded bundle-adjustment problem (tests, benchmarks)
