@@ -53,11 +53,13 @@ def window_frame_change(chunk: Sequence, refined, frames, config: StitchConfig =
 
 
 def loop_to_prior_frames(lc: LoopClosure, chunks, results, config: StitchConfig = StitchConfig()) -> LoopClosure:
-    """A loop closure's transform re-expressed between the two chunks' *prior* frames.
+    """A loop closure's transform re-expressed between the frames of the two ``chunks``' poses.
 
-    The memory verifies a recall between clouds built from the pipeline's *refined* window poses,
-    while the pose graph places the chunks' priors: ``T' = D_other T D_chunk^{-1}``, ``D`` the
-    window's refined -> prior frame change (:func:`window_frame_change`)."""
+    The memory verifies a recall between clouds built from the pipeline's *refined* window poses;
+    the pose graph places ``chunks``: ``T' = D_other T D_chunk^{-1}``, ``D`` the window's refined ->
+    chunk frame change (:func:`window_frame_change`). For chunks carrying their priors ``D`` is
+    what the window's refinement did; for chunks carrying the refined poses
+    (:func:`stitch_with_memory`) it is the identity."""
     if lc.other_frames is None:
         raise StitchError(f"loops: chunk {lc.chunk} -> {lc.other} does not name the creating window's frames")
     Dc = window_frame_change(chunks[lc.chunk], results[lc.chunk].poses, lc.frames, config)
@@ -91,14 +93,17 @@ def stitch_with_memory(chunks, overlap: int | None = None, config: StitchConfig 
                        results=None, observe=None) -> StitchResult:
     """Stitch chunks with memory recall across them, then refine the whole trajectory.
 
-    Run every chunk with one memory bank; align consecutive chunks on their shared frames; put loops
-    and overlaps in the Sim(3) pose graph (inconsistent loops left out); place and fuse the chunks;
-    ``refine``: :func:`cm3d.long_video.refine_frames`, kept when it passes its self-check.
+    Run every chunk with one memory bank; align consecutive chunks' *refined* poses (each chunk's
+    :attr:`~cm3d.pipeline.SequenceResult.poses`) on their shared frames; put loops and overlaps in the
+    Sim(3) pose graph (inconsistent loops left out); place and fuse the refined chunks; ``refine``:
+    :func:`cm3d.long_video.refine_frames`, kept when it passes its self-check.
     pipeline_config: None for :func:`memory_config_for_chunks`; bank: a bank to start from; progress:
     optional ``(stage, done, total)``; results: per-chunk results of an earlier call (skips the runs);
     observe: passed to :func:`cm3d.pipeline.run` (called after each chunk).
     Returns :class:`StitchResult` (method ``"cm3d-memory"``, with ``loops``, ``bank``, ``results``;
-    ``refinement`` has the pose graph's per-loop facts, ``poses_stitched`` and ``frames``).
+    ``refinement`` has the pose graph's per-loop facts, ``poses_stitched`` (the refined chunks
+    placed by the pose graph), ``poses_stitched_prior`` (the baseline: the chunks' priors placed by
+    their own overlaps) and ``frames``).
     """
     from cm3d import pipeline
 
@@ -110,11 +115,16 @@ def stitch_with_memory(chunks, overlap: int | None = None, config: StitchConfig 
     if results is None:
         bank, results = pipeline.run(list(chunks), cfg, bank, progress=progress, observe=observe)
     t_pipe = time.perf_counter() - t0
-    A, G0, bounds = align_boundaries(chunks, ranges, overlaps, config)
-    loops = [loop_to_prior_frames(lc, chunks, results, config) for lc in recall_loops(results)]
+    # the chunks as the pipeline refined them: their poses are what is stitched (the priors only for
+    # the baseline, placed by their own overlaps)
+    refined = [c.replace(cam_to_world=np.asarray(r.poses, np.float64)) for c, r in zip(chunks, results)]
+    _, Gp, _ = align_boundaries(chunks, ranges, overlaps, config)
+    prior_seq, _ = merge_chunks(chunks, ranges, overlaps, ts, Gp, "cm3d-memory")
+    A, G0, bounds = align_boundaries(refined, ranges, overlaps, config)
+    loops = [loop_to_prior_frames(lc, refined, results, config) for lc in recall_loops(results)]
     G, facts = sim3_pose_graph(G0, A, loops, graph)
-    seq, frame_chunk = merge_chunks(chunks, ranges, overlaps, ts, G, "cm3d-memory")
-    chained, _ = merge_chunks(chunks, ranges, overlaps, ts, G0, "cm3d-memory")
+    seq, frame_chunk = merge_chunks(refined, ranges, overlaps, ts, G, "cm3d-memory")
+    chained, _ = merge_chunks(refined, ranges, overlaps, ts, G0, "cm3d-memory")
     stitched, frame_facts, kept = seq.cam_to_world, {"kept": False}, False
     if refine:
         static = np.ones(seq.depth.shape, bool)
@@ -122,11 +132,12 @@ def stitch_with_memory(chunks, overlap: int | None = None, config: StitchConfig 
             mine = np.flatnonzero(frame_chunk[a:b] == k)
             static[a + mine] = ~np.asarray(r.masks, bool)[mine]
         poses, frame_facts = refine_frames(seq, static, frame_config, centre_noise(bounds),
-                                           rotation_noise(chunks, overlaps, G))
+                                           rotation_noise(refined, overlaps, G))
         kept = frame_facts["kept"]
         seq = seq.replace(cam_to_world=poses)
     facts = {**facts, "chained_transforms": G0, "pipeline_s": t_pipe, "windows": sum(len(r.windows) for r in results),
              "recalls": sum(int(w.accepted) for r in results for w in r.windows), "poses_stitched": stitched,
+             "poses_stitched_prior": prior_seq.cam_to_world,
              "frames": frame_facts}
     return StitchResult(sequence=seq, poses_aligned=chained.cam_to_world, poses_refined=seq.cam_to_world,
                         chunk_transforms=G, ranges=ranges, frame_chunk=frame_chunk, boundaries=bounds,
@@ -141,7 +152,7 @@ def memory_sequence_result(res: StitchResult, chunks):
 
     if res.method != "cm3d-memory":
         raise StitchError(f"res: expected a stitch_with_memory result, got method {res.method!r}")
-    prior = res.refinement.get("poses_stitched", res.poses_aligned)
+    prior = res.refinement.get("poses_stitched_prior", res.poses_aligned)
     masks = np.zeros(res.sequence.depth.shape, bool)
     windows = []
     for k, ((a, b), r) in enumerate(zip(res.ranges, res.results)):
