@@ -30,8 +30,9 @@ Compared: naive stitching, overlap stitching (Sim(3) alignment, as above), and
 :func:`cm3d.long_video.stitch_with_memory`: every chunk through the pipeline threading one memory bank,
 each recall of a map made two or more chunks earlier a Sim(3) loop constraint, and a Sim(3) pose
 graph over the chunk transforms (overlap + loop constraints), then the whole-trajectory
-refinement. Keys: ``ate_loop_naive``, ``ate_loop_stitch``, ``ate_loop_chained`` (the chain of
-overlap alignments before the pose graph), ``ate_loop`` (+ the loop as the memory registered it),
+refinement; it stitches the chunks' refined poses, where ``stitch_chunks`` stitches the priors.
+Keys: ``ate_loop_naive``, ``ate_loop_stitch``, ``ate_loop_chained`` (the chain of the refined
+chunks' overlap alignments before the pose graph), ``ate_loop`` (+ the loop as the memory registered it),
 ``ate_loop_refined`` (its whole-trajectory refinement), ``ate_loop_stitch_refined`` (overlap stitching
 + refinement, no loop),
 ``loops_recalled``, ``loops_kept``, ``loop_improvement`` (= 1 − ate_loop / ate_loop_stitch),

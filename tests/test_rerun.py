@@ -75,7 +75,8 @@ def test_memory_points_on_the_recalled_visit(demo):
     recalled = [r["visit"] for r in rows if r["recalled"] == "yes"]
     assert recalled == [7]
     mem = [(v, r) for _, v, r in ents["/world/memory/recalled"] if r.get("Points3D:positions")]
-    assert [v for v, _ in mem] == recalled and len(mem[0][1]["Points3D:positions"]) > 50
+    # every window of the recalled visit that used the memory logs its points (one or both)
+    assert sorted({v for v, _ in mem}) == recalled and len(mem[0][1]["Points3D:positions"]) > 50
     text = {v: " ".join(t for _, w, r in ents["/log/recall"] if w == v for t in r["TextLog:text"])
             for v in range(VISITS)}
     assert "ACCEPTED map 0" in text[7] and "not accepted" in text[1] and "candidates [0]" in text[1]
