@@ -7,7 +7,6 @@ against the static reference's robust statistics along and across the viewing ra
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 
 from cm3d.motion.frames import FramePrior, MotionConfig
@@ -59,13 +58,6 @@ def candidate_regions(flow_mask, geo_mask, valid, cfg: MotionConfig = MotionConf
     return labels >= 0, labels
 
 
-def _depth_smooth(depth, max_ratio: float):
-    """(H, W) bool: the 3x3 neighbourhood's depth spans less than the ratio ``max_ratio`` (no depth edge)."""
-    lo = jax.lax.reduce_window(depth, jnp.inf, jax.lax.min, (3, 3), (1, 1), "SAME")
-    hi = jax.lax.reduce_window(depth, -jnp.inf, jax.lax.max, (3, 3), (1, 1), "SAME")
-    return (lo > camera.MIN_DEPTH) & (hi < max_ratio * lo)
-
-
 def keypoint_displacements(prior_t: FramePrior, prior_t2: FramePrior, matches, rel,
                            cfg: MotionConfig = MotionConfig()):
     """Relative 3D displacement (N, 3) of matched keypoints in camera-t axes, their unit viewing rays
@@ -79,8 +71,8 @@ def keypoint_displacements(prior_t: FramePrior, prior_t2: FramePrior, matches, r
     uv0, uv1 = matches.uv0.astype(prior_t.depth.dtype), matches.uv1.astype(prior_t.depth.dtype)
     z0, in0 = _sample_median3(prior_t.depth, uv0)
     z1, in1 = _sample_median3(prior_t2.depth, uv1)
-    s0, _ = _sample(_depth_smooth(prior_t.depth, cfg.kp_max_depth_ratio), uv0)
-    s1, _ = _sample(_depth_smooth(prior_t2.depth, cfg.kp_max_depth_ratio), uv1)
+    s0, _ = _sample(camera.depth_smooth(prior_t.depth, cfg.kp_max_depth_ratio), uv0)
+    s1, _ = _sample(camera.depth_smooth(prior_t2.depth, cfg.kp_max_depth_ratio), uv1)
     ok = jnp.asarray(matches.valid, bool) & in0 & in1 & s0 & s1 & (z0 > camera.MIN_DEPTH) & (z1 > camera.MIN_DEPTH)
 
     X0 = camera.backproject(uv0, z0, prior_t.intrinsic)

@@ -10,6 +10,7 @@ All functions broadcast over leading (frame) axes.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -84,3 +85,13 @@ def ego_flow(depth0, K0, cam_to_world0, K1, cam_to_world1):
     flow = uv1.reshape(depth0.shape + (2,)) - pixel_grid(H, W, depth0.dtype)
     valid = (depth0 > MIN_DEPTH) & (z1.reshape(depth0.shape) > MIN_DEPTH)
     return jnp.where(valid[..., None], flow, 0.0), valid
+
+
+def depth_smooth(depth, max_ratio: float):
+    """(..., H, W) bool: the pixel's 3x3 neighbourhood has positive depth spanning less than the
+    ratio ``max_ratio`` (max / min): no depth edge, no hole, so the pixel's depth measures the
+    surface a slightly wrong pixel would also see."""
+    win = (1,) * (depth.ndim - 2) + (3, 3)
+    lo = jax.lax.reduce_window(depth, jnp.inf, jax.lax.min, win, (1,) * depth.ndim, "SAME")
+    hi = jax.lax.reduce_window(depth, -jnp.inf, jax.lax.max, win, (1,) * depth.ndim, "SAME")
+    return (lo > MIN_DEPTH) & (hi < max_ratio * lo)

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 
 from cm3d import trajectory
 from cm3d.motion import moving_tracks
-from cm3d.ops import robust
+from cm3d.ops import camera, robust
 from cm3d.pipeline.config import PipelineConfig
 from cm3d.pipeline.landmarks import landmark_observations, nearest_pixel
 from cm3d.pipeline.state import Landmarks, Window
@@ -170,11 +170,9 @@ def observed_depth(win: Window, obs: trajectory.Observations, max_ratio: float):
     surface) or an invalid observation."""
     h, w = win.depth.shape[1:]
     r, c = nearest_pixel(obs.uv, h, w)
-    lo = jax.lax.reduce_window(win.depth, jnp.inf, jax.lax.min, (1, 3, 3), (1, 1, 1), "SAME")
-    hi = jax.lax.reduce_window(win.depth, -jnp.inf, jax.lax.max, (1, 3, 3), (1, 1, 1), "SAME")
     i = obs.pose_idx
     d = win.depth[i, r, c]
-    ok = obs.valid & (win.conf[i, r, c] > 0) & (lo[i, r, c] > 0) & (hi[i, r, c] < max_ratio * lo[i, r, c])
+    ok = obs.valid & (win.conf[i, r, c] > 0) & camera.depth_smooth(win.depth, max_ratio)[i, r, c]
     return jnp.where(ok, d, 0.0)
 
 

@@ -557,8 +557,8 @@ def calibrate_depth(graph: FactorGraph, x: Variables, inlier, floor: float) -> F
       bias remains, of the same order), so a frame's ``n_i`` depth factors are weighted to carry
       one measurement of std ``σ_s`` together: ``depth_sigma = max(σ_w, σ_s √n_i, floor)``.
 
-    Frames with fewer than 8 such observations keep their depths; with fewer than 8 frames'
-    worth in all, the sigmas stay as they were."""
+    Frames with fewer than 8 such observations keep their depths; with fewer than 8 such
+    observations in all, or fewer than 3 frames with 8, the sigmas stay as they were."""
     f = graph.projection
     N = graph.intrinsics.shape[0]
     _, z = project(x.poses[f.pose_idx], x.points[f.point_idx], graph.intrinsics[f.pose_idx])
