@@ -216,8 +216,8 @@ def test_sim3_pose_graph_closes_a_loop():
 
 
 def test_recall_loops_from_window_records(noise_free):
-    """Only accepted recalls of maps created two or more chunks earlier are loop closures, tied to
-    the creating chunk and window; the memory's transform (between the windows' refined frames) is
+    """Only accepted recalls of maps the previous chunk did not write (create or merge into) are
+    loop closures, tied to the creating chunk and window; the memory's transform (between the windows' refined frames) is
     re-expressed between the chunks' prior frames."""
     from types import SimpleNamespace
 
@@ -229,9 +229,11 @@ def test_recall_loops_from_window_records(noise_free):
     results = [SimpleNamespace(windows=[win(False, -1, True, 0)]),
                SimpleNamespace(windows=[win(True, 0, False, 0), win(False, -1, True, 1)]),  # consecutive: no loop
                SimpleNamespace(windows=[win(False, -1, True, 2)]),
-               SimpleNamespace(windows=[win(True, 1, False, 1, T), win(True, 3, False, 3)])]  # map 3 unknown
+               SimpleNamespace(windows=[win(True, 1, False, 1, T), win(True, 3, False, 3)]),  # map 3 unknown
+               # map 1 again: chunk 3 just merged into it, so this is the chain, not a loop; map 2 is one
+               SimpleNamespace(windows=[win(True, 1, False, 1), win(True, 2, False, 2)])]
     loops = stitch.recall_loops(results)
-    assert [(lc.chunk, lc.other) for lc in loops] == [(3, 1)]
+    assert [(lc.chunk, lc.other) for lc in loops] == [(3, 1), (4, 2)]
     np.testing.assert_array_equal(loops[0].transform, T)
     assert loops[0].other_frames == (0, 20)
     # refined windows = the priors moved by known rigid motions Q (depth unchanged): the loop in prior

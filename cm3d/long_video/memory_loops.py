@@ -1,8 +1,8 @@
 """Memory recall across chunks: loop closures from the pipeline's memory, the Sim(3) pose graph over
 the chunks, and the whole-trajectory refinement (:func:`stitch_with_memory`).
 
-Chunks run through the pipeline with one memory bank; a recall of a map made two or more chunks
-earlier is a Sim(3) loop (:func:`recall_loops`, :func:`loop_to_prior_frames`).
+Chunks run through the pipeline with one memory bank; a recall of a map that the previous chunk
+did not write is a Sim(3) loop (:func:`recall_loops`, :func:`loop_to_prior_frames`).
 """
 
 from __future__ import annotations
@@ -23,20 +23,29 @@ from cm3d.long_video.stitch import StitchResult, centre_noise
 
 
 def recall_loops(results, min_gap: int = 2) -> list[LoopClosure]:
-    """Loop closures from the pipeline's per-chunk results: every accepted recall of a map created at
-    least ``min_gap`` chunks earlier. A map keeps its creator chunk's frame, so the recall's Sim(3)
-    maps the recalling chunk's frame into the creator's."""
-    creator = {}
+    """Loop closures from the pipeline's per-chunk results: every accepted recall of a map that
+    neither the last ``min_gap - 1`` chunks nor an earlier window of the recalling chunk wrote
+    (created or merged into). A map
+    keeps its creator chunk's frame, so the recall's Sim(3) maps the recalling chunk's frame into
+    the creator's.
+
+    A map the chunks keep extending as the camera moves on (each chunk recalls the map its
+    predecessor just merged into) is the chain of overlaps again, not a return to an earlier place:
+    its recalls are measured against the newest chunks' content, already tied to the recalling
+    chunk by the overlaps, and as loops to the creator they would count the chain twice."""
+    creator, written = {}, {}
     loops = []
     for k, res in enumerate(results):
         for w in res.windows:
             made = creator.get(w.recalled_map)
-            if w.accepted and made is not None and k - made[0] >= min_gap:
+            if w.accepted and made is not None and k - written[w.recalled_map] >= min_gap:
                 loops.append(LoopClosure(chunk=k, other=made[0], frames=tuple(w.frames),
                                          transform=np.asarray(w.transform, np.float64),
                                          inliers=int(w.inlier_count), rmse=float(w.rmse), other_frames=made[1]))
-            if w.created_map and w.map_id >= 0:
-                creator.setdefault(w.map_id, (k, tuple(w.frames)))
+            if w.map_id >= 0:
+                if w.created_map:
+                    creator.setdefault(w.map_id, (k, tuple(w.frames)))
+                written[w.map_id] = k
     return loops
 
 
