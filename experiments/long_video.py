@@ -28,7 +28,7 @@ Loop variant (``--loop-level``, default moderate; not in ``--quick``): the same 
 that comes back to its start (``synthetic.generate_long_video(loop=True)``), the same chunking.
 Compared: naive stitching, overlap stitching (Sim(3) alignment, as above), and
 :func:`cm3d.long_video.stitch_with_memory`: every chunk through the pipeline threading one memory bank,
-each recall of a map made two or more chunks earlier a Sim(3) loop constraint, and a Sim(3) pose
+each recall of a map the previous chunk did not write a Sim(3) loop constraint, and a Sim(3) pose
 graph over the chunk transforms (overlap + loop constraints), then the whole-trajectory
 refinement; it stitches the chunks' refined poses, where ``stitch_chunks`` stitches the priors.
 Keys: ``ate_loop_naive``, ``ate_loop_stitch``, ``ate_loop_chained`` (the chain of the refined
