@@ -217,8 +217,8 @@ def test_sim3_pose_graph_closes_a_loop():
 
 def test_recall_loops_from_window_records(noise_free):
     """Only accepted recalls of maps the previous chunk did not write (create or merge into) are
-    loop closures, tied to the creating chunk and window; the memory's transform (between the windows' refined frames) is
-    re-expressed between the chunks' prior frames."""
+    loop closures, tied to the creating chunk and window; the memory's transform (between the
+    windows' refined frames) is re-expressed between the chunks' prior frames."""
     from types import SimpleNamespace
 
     def win(acc, rec, created, map_id, T=np.eye(4)):

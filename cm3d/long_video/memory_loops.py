@@ -25,9 +25,8 @@ from cm3d.long_video.stitch import StitchResult, centre_noise
 def recall_loops(results, min_gap: int = 2) -> list[LoopClosure]:
     """Loop closures from the pipeline's per-chunk results: every accepted recall of a map that
     neither the last ``min_gap - 1`` chunks nor an earlier window of the recalling chunk wrote
-    (created or merged into). A map
-    keeps its creator chunk's frame, so the recall's Sim(3) maps the recalling chunk's frame into
-    the creator's.
+    (created or merged into). A map keeps its creator chunk's frame, so the recall's Sim(3) maps
+    the recalling chunk's frame into the creator's.
 
     A map the chunks keep extending as the camera moves on (each chunk recalls the map its
     predecessor just merged into) is the chain of overlaps again, not a return to an earlier place:
