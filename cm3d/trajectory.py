@@ -27,7 +27,11 @@ class TrackConfig:
     keyframes; track_length: frames a track spans (keyframe included); conf_quantile: a pixel is
     high-confidence when its confidence reaches this quantile of the frame's static pixels;
     border: pixels kept clear of the image border; fb_max_px: forward-backward flow consistency
-    (only with a backward flow); min_track: shortest track kept (frames).
+    (only with a backward flow); min_track: shortest track kept (frames); klt_radius: half-width of
+    the patch with which a chained position is re-aligned to the track's first frame
+    (:func:`align_to_seed`; 0: off), klt_iterations its Gauss-Newton steps, klt_max_px the most it may
+    move the chained position, klt_rcond the relative conditioning below which a direction of the
+    patch's structure tensor is left to the chain (the aperture problem of an edge).
     """
 
     cell: int = 16
@@ -37,6 +41,10 @@ class TrackConfig:
     border: int = 4
     fb_max_px: float = 0.5
     min_track: int = 3
+    klt_radius: int = 3
+    klt_iterations: int = 4
+    klt_max_px: float = 1.5
+    klt_rcond: float = 0.1
 
     def __post_init__(self):
         if self.cell < 1 or self.keyframe_every < 1 or self.track_length < 2:
@@ -171,6 +179,60 @@ def bilinear(stack, idx, uv):
     a, b = stack[idx, y0, x0], stack[idx, y0, x0 + 1]
     c, d = stack[idx, y0 + 1, x0], stack[idx, y0 + 1, x0 + 1]
     return (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
+
+
+def gray(images):
+    """Luma in [0, 1] of uint8 RGB images (..., H, W, 3) -> (..., H, W, 1)."""
+    w = jnp.asarray([0.299, 0.587, 0.114], jnp.float32) / 255.0
+    return (images.astype(jnp.float32) @ w)[..., None]
+
+
+def align_to_seed(ref, ref_idx, seed_uv, cur, uv, cfg: TrackConfig = TrackConfig()):
+    """Re-align chained track positions to their first frame: translation-only inverse-compositional
+    Lucas-Kanade of the zero-mean patch around ``seed_uv`` in ``ref[ref_idx]`` against ``cur``.
+
+    Chaining per-frame flow adds each frame's error, and dense flow shrinks the small motions
+    between consecutive frames (DIS moves a track 0.88x as far as the true flow over 10 frames of a
+    slow pan on the held-out world, 0.96x re-aligned here). ref: (S, H, W, 1) gray, ref_idx (L,),
+    seed_uv (L, 2), cur: (H, W, 1) gray, uv (L, 2) chained positions. Returns the positions (L, 2):
+    the aligned one where it lowers the patch's error and moves at most ``cfg.klt_max_px``, else
+    ``uv``. Along a direction the patch hardly constrains (structure-tensor eigenvalue below
+    ``cfg.klt_rcond`` of the largest: an edge) the chained position is kept."""
+    r = cfg.klt_radius
+    if r <= 0:
+        return uv
+    L = uv.shape[0]
+    g = jnp.arange(-r, r + 1, dtype=uv.dtype)
+    offs = jnp.stack(jnp.meshgrid(g, g, indexing="xy"), -1).reshape(-1, 2)  # (P, 2)
+    P = offs.shape[0]
+    idx = jnp.repeat(ref_idx, P)
+
+    def at_ref(d):
+        return bilinear(ref, idx, (seed_uv[:, None] + offs + d).reshape(-1, 2))[:, 0].reshape(L, P)
+
+    def zero_mean(x):
+        return x - jnp.mean(x, -1, keepdims=True)
+
+    tmpl = zero_mean(at_ref(0.0))
+    one = jnp.eye(2, dtype=uv.dtype)
+    grad = jnp.stack([(at_ref(one[k]) - at_ref(-one[k])) * 0.5 for k in range(2)], -1)  # (L, P, 2)
+    lam, V = jnp.linalg.eigh(jnp.einsum("lpi,lpj->lij", grad, grad))
+    inv = jnp.where(lam >= cfg.klt_rcond * lam[:, -1:], 1.0 / jnp.maximum(lam, 1e-12), 0.0)
+    Hinv = jnp.einsum("lik,lk,ljk->lij", V, inv, V)
+    zero = jnp.zeros(L, jnp.int32)
+
+    def residual(p):
+        return zero_mean(bilinear(cur[None], jnp.repeat(zero, P), (p[:, None] + offs).reshape(-1, 2))[:, 0]
+                         .reshape(L, P)) - tmpl
+
+    def gn(_, p):
+        b = jnp.einsum("lpi,lp->li", grad, residual(p))
+        return p - jnp.einsum("lij,lj->li", Hinv, b)
+
+    p = jax.lax.fori_loop(0, cfg.klt_iterations, gn, uv)
+    better = jnp.sum(residual(p) ** 2, -1) < jnp.sum(residual(uv) ** 2, -1)
+    ok = better & (jnp.linalg.norm(p - uv, axis=-1) <= cfg.klt_max_px) & jnp.all(jnp.isfinite(p), -1)
+    return jnp.where(ok[:, None], p, uv)
 
 
 def chain_tracks(flow, static, seeds_uv, seeds_valid, seed_frames, cfg: TrackConfig = TrackConfig(),

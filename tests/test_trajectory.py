@@ -85,6 +85,38 @@ def test_forward_backward_check_cuts_inconsistent_tracks(world):
     assert not np.any(np.asarray(bad.valid)[:, 1:])
 
 
+def test_align_to_seed_recovers_a_subpixel_shift_that_chaining_missed():
+    """A smooth texture seen again shifted by a known sub-pixel amount: chained positions 0.6 px
+    off are pulled back onto the true ones; on a flat patch (nothing to align) and where the true
+    position is farther than ``klt_max_px`` the chained positions stay. Reference: the shift by
+    construction. jit gives the same positions."""
+    rng = np.random.default_rng(0)
+    H, W = 64, 80
+    k = rng.uniform(0.2, 0.6, (6, 2)) * rng.choice([-1, 1], (6, 2))
+    ph = rng.uniform(0, 2 * np.pi, 6)
+
+    def texture(x, y):
+        return 0.5 + 0.08 * sum(np.sin(k[i, 0] * x + k[i, 1] * y + ph[i]) for i in range(6))
+
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    shift = np.array([0.8, -0.45])
+    ref = texture(u, v)
+    cur = texture(u - shift[0], v - shift[1])  # the texture moved by +shift
+    cur[:, 60:] = 0.5  # a flat region
+    seed = np.array([[20.0, 20.0], [35.5, 30.25], [50.0, 44.0], [30.0, 50.0], [65.0, 30.0]])
+    chained = seed + shift + np.array([[0.6, 0.0], [0.0, -0.6], [-0.4, 0.45], [3.0, 0.0], [0.5, 0.0]])
+    cfg = trajectory.TrackConfig()
+    args = (jnp.asarray(ref, jnp.float32)[None, ..., None], jnp.zeros(5, jnp.int32), jnp.asarray(seed, jnp.float32),
+            jnp.asarray(cur, jnp.float32)[..., None], jnp.asarray(chained, jnp.float32))
+    out = np.asarray(trajectory.align_to_seed(*args, cfg))
+    np.testing.assert_allclose(out[:3], seed[:3] + shift, atol=0.05)  # chained: 0.6 px off
+    np.testing.assert_allclose(out[3:], chained[3:], atol=1e-6)  # beyond klt_max_px; a flat patch
+    np.testing.assert_allclose(np.asarray(jax.jit(trajectory.align_to_seed, static_argnums=5)(*args, cfg)), out,
+                               atol=1e-5)
+    off = trajectory.TrackConfig(klt_radius=0)
+    np.testing.assert_array_equal(np.asarray(trajectory.align_to_seed(*args, off)), chained.astype(np.float32))
+
+
 def test_keypoint_chains_equal_flow_chains(world):
     """Matches that re-detect each keypoint where the previous match sent it chain like the flow."""
     _, gt = world

@@ -19,15 +19,21 @@ def nearest_pixel(uv, h: int, w: int):
     return r, c
 
 
-def advance_landmarks(lm_: Landmarks, flow, static, slot, cfg: PipelineConfig) -> Landmarks:
+def advance_landmarks(lm_: Landmarks, flow, static, slot, cfg: PipelineConfig, window_images=None,
+                      image=None) -> Landmarks:
     """Follow live landmarks from the previous frame into slot ``slot`` with the previous flow
-    (chained bilinear flow, as :func:`cm3d.trajectory.chain_tracks`); record the observation. A
-    landmark stops at the border or on a dynamic pixel."""
+    (chained bilinear flow, as :func:`cm3d.trajectory.chain_tracks`), re-aligned to each landmark's
+    seed frame (:func:`cm3d.trajectory.align_to_seed`) given the window's images (W, h, w, 3) and
+    this frame's (h, w, 3); record the observation. A landmark stops at the border or on a dynamic
+    pixel."""
     h, w = static.shape
     T = cfg.track.track_length
     b = cfg.track.border * 0.5
     fl = trajectory.bilinear(flow[None], jnp.zeros(lm_.uv.shape[0], jnp.int32), lm_.uv)
     nxt = lm_.uv + fl
+    if window_images is not None and image is not None:
+        nxt = trajectory.align_to_seed(trajectory.gray(window_images), lm_.seed, lm_.obs_uv[:, 0],
+                                       trajectory.gray(image), nxt, cfg.track)
     inside = (nxt[:, 0] >= b) & (nxt[:, 0] <= w - 1 - b) & (nxt[:, 1] >= b) & (nxt[:, 1] <= h - 1 - b)
     r, c = nearest_pixel(nxt, h, w)
     j = slot - lm_.seed

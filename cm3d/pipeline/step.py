@@ -158,8 +158,9 @@ def step(state: MapState, inputs_t: Inputs, cfg: PipelineConfig = PipelineConfig
     dynamic, static = static_mask(inputs_t, cfg)
 
     # 2. static landmarks: follow the live ones into this frame, buffer the frame
-    lms = jax.lax.cond(s > 0, lambda m: advance_landmarks(m, state.prev_flow, static, s, cfg), lambda m: m,
-                       state.landmarks)
+    follow = functools.partial(advance_landmarks, flow=state.prev_flow, static=static, slot=s, cfg=cfg,
+                               window_images=st.window.image, image=f.image)
+    lms = jax.lax.cond(s > 0, follow, lambda m: m, state.landmarks)
     st = st.replace(window=buffer_frame(st.window, s, inputs_t, init_pose, static, cfg), landmarks=lms)
 
     # 3. every keyframe_interval frames: factor graph, recall / verify / update, factor graph with memory
