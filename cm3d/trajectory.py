@@ -51,6 +51,10 @@ class TrackConfig:
             raise ValueError("TrackConfig: cell, keyframe_every >= 1 and track_length >= 2 required")
         if not 0.0 <= self.conf_quantile < 1.0:
             raise ValueError("TrackConfig.conf_quantile: must be in [0, 1)")
+        if self.klt_radius < 0 or self.klt_iterations < 0:
+            raise ValueError("TrackConfig: klt_radius and klt_iterations must be >= 0")
+        if not (self.klt_max_px > 0 and 0.0 <= self.klt_rcond <= 1.0):
+            raise ValueError("TrackConfig: klt_max_px must be > 0 and klt_rcond in [0, 1]")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -114,6 +114,8 @@ def test_align_to_seed_recovers_a_subpixel_shift_that_chaining_missed():
     np.testing.assert_allclose(np.asarray(jax.jit(trajectory.align_to_seed, static_argnums=5)(*args, cfg)), out,
                                atol=1e-5)
     off = trajectory.TrackConfig(klt_radius=0)
+    with pytest.raises(ValueError, match="klt_rcond"):
+        trajectory.TrackConfig(klt_rcond=1.5)
     np.testing.assert_array_equal(np.asarray(trajectory.align_to_seed(*args, off)), chained.astype(np.float32))
 
 
