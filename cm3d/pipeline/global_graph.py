@@ -16,15 +16,18 @@ a long sequence. :func:`global_refine` solves one pose graph over every frame in
   position residual, whitened by the priors' frame-to-frame jitter, is a χ² statistic. Where the
   windows agree (the usual case over a few windows: the chain is then more accurate than the priors
   can tell), the priors could only pull their own jitter into the result, so the chain is kept;
-* a window whose refined shape the priors reject (:func:`window_misfit`: the window's poses rigidly
-  placed on its frames' priors, whitened squared residuals each capped at ``χ²₆(outlier_quantile)``,
-  summed, above the ``window_quantile`` of χ²(6 (n − 1)) times the median window's misfit per
-  degree of freedom when that is above 1 and there are 3 windows or more: the priors' noise is not
-  white within a window) loses its motion factors: there the result is the prior; single motion
-  factors above ``χ²₆(outlier_quantile)``, in the solve or against the priors' own relative motion
-  (independent of the solve, which spreads a gross error over its neighbours), are dropped too, and
-  split their window: each run of frames still joined by motion factors is judged on its own, so
-  one broken link (a jump in the video) does not condemn the rest of its window.
+* a window whose refined shape is further from the priors than the priors' own noise explains
+  loses its motion factors: there the result is the prior. The statistic (:func:`window_residuals`:
+  the window's poses rigidly placed on its frames' priors) is the median whitened squared residual
+  of its frames, a robust variance of the window's misfit; its unit is the median window's (at
+  least χ²₆'s median when the priors' sigma is right; χ²₆'s median alone with fewer than 3
+  windows), since the priors' noise is not white within a window (drift). The typical window's
+  misfit is mostly the priors' noise, so a window above ``max_misfit_ratio`` = 2 units is one whose
+  own error is larger than the priors' there: the prior alone is the better estimate. Single
+  motion factors above ``χ²₆(outlier_quantile)``, in the solve or against the priors' own relative
+  motion (independent of the solve, which spreads a gross error over its neighbours), are dropped
+  too, and split their window: each run of frames still joined by motion factors is judged on its
+  own, so one broken link (a jump in the video) does not condemn the rest of its window.
 
 The chain is block-tridiagonal (:func:`cm3d.solvers.chain_pose_graph.solve_chain`, padded to a
 multiple of ``pad_frames`` frames: one compiled program for many lengths). Whether the result is
@@ -47,6 +50,7 @@ from cm3d.solvers.chain_pose_graph import solve_chain
 from cm3d.solvers.factors import FactorGraph, MotionFactors, PriorFactors, ProjectionFactors
 
 _CHI2_1_MEDIAN = 0.45493642311957283  # median of χ²_1
+_CHI2_6_MEDIAN = 5.348120627447122  # median of χ²_6
 _MAD_EFFICIENCY = 0.37  # the MAD's asymptotic efficiency as a scale estimate at the normal (0.367)
 
 
@@ -55,23 +59,24 @@ class GlobalGraphConfig:
     """Options of :func:`global_refine`: ``enabled``; consistency_p: the graph runs when the chained
     windows' agreement with the priors has a p-value below this (:func:`chain_consistency`; 1: always);
     vce_iterations: variance-estimation rounds;
-    outlier_quantile: single motion factors above ``χ²₆(q)`` are dropped; window_quantile: a window
-    (or a run of it, see the module) whose motion residuals exceed ``χ²_{6n}(q)`` keeps the prior;
+    outlier_quantile: single motion factors above ``χ²₆(q)`` are dropped; max_misfit_ratio: a window
+    (or a run of it) whose misfit to the priors is above this many typical windows' keeps the prior
+    (module docstring: 2 is where its own error variance passes the priors');
     iterations: LM steps per solve; pad_frames: the graph is padded to a multiple of this many frames."""
 
     enabled: bool = True
     consistency_p: float = 0.01
     vce_iterations: int = 4
     outlier_quantile: float = 0.999
-    window_quantile: float = 0.999
+    max_misfit_ratio: float = 2.0
     iterations: int = 8
     pad_frames: int = 64
 
     def __post_init__(self):
         if self.vce_iterations < 1 or self.iterations < 1 or self.pad_frames < 1:
             raise ValueError(f"GlobalGraphConfig: vce_iterations, iterations, pad_frames >= 1 required, got {self}")
-        if not (0 < self.outlier_quantile < 1 and 0 < self.window_quantile < 1 and 0 < self.consistency_p <= 1):
-            raise ValueError(f"GlobalGraphConfig: quantiles in (0, 1) required, got {self}")
+        if not (0 < self.outlier_quantile < 1 and 0 < self.consistency_p <= 1 and self.max_misfit_ratio > 1):
+            raise ValueError(f"GlobalGraphConfig: quantiles in (0, 1) and max_misfit_ratio > 1 required, got {self}")
 
 
 def chain_graph(prior, measured, sigma_prior, sigma_motion, weight) -> FactorGraph:
@@ -131,11 +136,11 @@ def _vce(res, lev, use, sig):
 
 
 @jax.jit
-def window_misfit(prior, poses, valid, sigma, cap):
+def window_residuals(prior, poses, valid, sigma):
     """How far one window's refined shape is from the prior's over the same frames: the rigid motion
     ``T`` that best places the window's poses (n, 4, 4) on the priors (Gauss-Newton on
-    ``Σ |log(P_i^{-1} T X_i) / σ|²``, from the first frame's), then the sum over ``valid`` (n,) frames of
-    the whitened squared residuals, each capped at ``cap``. Independent of the global solution."""
+    ``Σ |log(P_i^{-1} T X_i) / σ|²`` over ``valid`` (n,) frames, from the first frame's), then each
+    frame's whitened squared residual (n,). Independent of the global solution."""
     Xi = se3.inverse(poses)
     T = prior[0] @ Xi[0]
     for _ in range(4):
@@ -146,7 +151,7 @@ def window_misfit(prior, poses, valid, sigma, cap):
         d = -jnp.linalg.solve(H + 1e-9 * jnp.eye(6, dtype=H.dtype), g)
         T = T @ se3.exp(jnp.where(jnp.isfinite(d), d, 0.0))
     r = se3.log(se3.inverse(prior) @ T @ poses) / sigma
-    return jnp.sum(valid * jnp.minimum(jnp.sum(r * r, -1), cap))
+    return jnp.sum(r * r, -1)
 
 
 def chain_consistency(prior, poses, windows) -> dict:
@@ -191,7 +196,8 @@ def global_refine(prior, poses, windows, cfg: GlobalGraphConfig = GlobalGraphCon
     """The global pose graph over a sequence (module docstring). prior, poses (S, 4, 4) cam_to_world
     (the input and the windows' chained result); windows: ``(first, last)`` frames per window.
     Returns (poses (S, 4, 4), facts dict: ``ran``, sigmas, motion factors used, windows kept /
-    dropped (``window_kept`` per window), costs)."""
+    dropped (``window_kept`` per window, ``window_misfit_ratio``: its worst run's misfit in typical
+    windows'), costs)."""
     P0 = np.asarray(prior, np.float64)
     X = np.asarray(poses, np.float64)
     if P0.shape != X.shape or P0.ndim != 3 or P0.shape[1:] != (4, 4):
@@ -237,20 +243,20 @@ def global_refine(prior, poses, windows, cfg: GlobalGraphConfig = GlobalGraphCon
         link = real & (w > 0) & (e2 <= lim1) & (_pad(np.sum((local / np.sqrt(2 * sp ** 2 + sm ** 2)) ** 2, 1),
                                                      N - 1, "last") <= lim1)
         runs = [(k, a, b) for k, (a0, b0) in enumerate(windows) for a, b in _linked_runs(link, a0, min(b0, S - 1))]
-        mis, dof = np.zeros(len(runs)), np.zeros(len(runs))
+        mis = np.zeros(len(runs))
         for m, (k, a, b) in enumerate(runs):
             n = b - a + 1
             pad = -(-n // 8) * 8
             sel = np.minimum(np.arange(a, a + pad), S - 1)
-            mis[m] = float(window_misfit(jnp.asarray(P0[sel]), jnp.asarray(X[sel]),
-                                         jnp.asarray((np.arange(pad) < n).astype(P0.dtype)), jnp.asarray(sp), lim1))
-            dof[m] = 6 * (n - 1)
+            e = window_residuals(jnp.asarray(P0[sel]), jnp.asarray(X[sel]),
+                                 jnp.asarray((np.arange(pad) < n).astype(P0.dtype)), jnp.asarray(sp))
+            mis[m] = float(np.median(np.asarray(e)[:n]))
         # the typical run sets the unit (the priors' noise is not white within a window: drift)
-        unit = max(1.0, float(np.median(mis / dof))) if len(runs) >= 3 else 1.0
+        unit = max(_CHI2_6_MEDIAN, float(np.median(mis))) if len(runs) >= 3 else _CHI2_6_MEDIAN
         misfit = np.zeros(nwin)
         for m, (k, a, b) in enumerate(runs):
-            misfit[k] += mis[m]
-            if mis[m] > unit * float(robust.chi2_quantile(cfg.window_quantile, dof[m])):
+            misfit[k] = max(misfit[k], mis[m] / unit)
+            if mis[m] > cfg.max_misfit_ratio * unit:
                 link[a:b] = False
                 dropped[k] = True
         w = np.where(link, w, 0.0)
@@ -261,6 +267,6 @@ def global_refine(prior, poses, windows, cfg: GlobalGraphConfig = GlobalGraphCon
                   "sigma_motion_trans": float(sm[0]), "sigma_motion_rot_deg": float(np.rad2deg(sm[3])),
                   "motion_factors": S - 1, "motion_factors_used": int(np.sum(w[: S - 1] > 0)),
                   "windows_dropped": int(dropped.sum()), "window_kept": [bool(not d) for d in dropped],
-                  "window_misfit": [round(float(m), 2) for m in misfit],
+                  "window_misfit_ratio": [round(float(m), 2) for m in misfit],
                   "cost_initial": float(sol.cost_initial), "cost": float(sol.cost)})
     return out, facts
