@@ -10,6 +10,7 @@ fixed shapes (padded, masked). ``S`` frames of ``H x W``; poses cam_to_world.
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -191,50 +192,89 @@ def gray(images):
     return (images.astype(jnp.float32) @ w)[..., None]
 
 
-def align_to_seed(ref, ref_idx, seed_uv, cur, uv, cfg: TrackConfig = TrackConfig()):
+@struct.dataclass
+class SeedPatches:
+    """What :func:`align_to_seed` needs of each track's first frame, taken once when it is seeded:
+    the zero-mean patch (L, P) around the seed pixel, its image gradient (L, P, 2) and the inverse
+    structure tensor (L, 2, 2) with the directions below ``klt_rcond`` of the largest eigenvalue
+    zeroed (an edge's aperture problem); ``P = (2 klt_radius + 1)²``."""
+
+    template: Any
+    grad: Any
+    hinv: Any
+
+    @classmethod
+    def empty(cls, L: int, cfg: "TrackConfig") -> "SeedPatches":
+        P = (2 * cfg.klt_radius + 1) ** 2
+        return cls(template=jnp.zeros((L, P), jnp.float32), grad=jnp.zeros((L, P, 2), jnp.float32),
+                   hinv=jnp.zeros((L, 2, 2), jnp.float32))
+
+
+def _patch_offsets(r: int, dtype):
+    g = jnp.arange(-r, r + 1, dtype=dtype)
+    return jnp.stack(jnp.meshgrid(g, g, indexing="xy"), -1).reshape(-1, 2)  # (P, 2)
+
+
+def _zero_mean(x):
+    return x - jnp.mean(x, -1, keepdims=True)
+
+
+def seed_patches(image, seed_uv, cfg: TrackConfig = TrackConfig()) -> SeedPatches:
+    """:class:`SeedPatches` of the seed pixels ``seed_uv`` (L, 2) in the gray image (H, W, 1) they were
+    seeded in (central differences for the gradient)."""
+    L = seed_uv.shape[0]
+    offs = _patch_offsets(cfg.klt_radius, seed_uv.dtype)
+    P = offs.shape[0]
+    zero = jnp.zeros(L * P, jnp.int32)
+
+    def at(d):
+        return bilinear(image[None], zero, (seed_uv[:, None] + offs + d).reshape(-1, 2))[:, 0].reshape(L, P)
+
+    one = jnp.eye(2, dtype=seed_uv.dtype)
+    grad = jnp.stack([(at(one[k]) - at(-one[k])) * 0.5 for k in range(2)], -1)  # (L, P, 2)
+    lam, V = jnp.linalg.eigh(jnp.einsum("lpi,lpj->lij", grad, grad))
+    inv = jnp.where(lam >= cfg.klt_rcond * lam[:, -1:], 1.0 / jnp.maximum(lam, 1e-12), 0.0)
+    return SeedPatches(template=_zero_mean(at(0.0)), grad=grad, hinv=jnp.einsum("lik,lk,ljk->lij", V, inv, V))
+
+
+def align_to_seed(patches: SeedPatches, cur, uv, cfg: TrackConfig = TrackConfig()):
     """Re-align chained track positions to their first frame: translation-only inverse-compositional
-    Lucas-Kanade of the zero-mean patch around ``seed_uv`` in ``ref[ref_idx]`` against ``cur``.
+    Lucas-Kanade of each track's seed patch (:func:`seed_patches`) against the gray image ``cur``
+    (H, W, 1), from the chained positions ``uv`` (L, 2).
 
     Chaining per-frame flow adds each frame's error, and dense flow shrinks the small motions
     between consecutive frames (DIS moves a track 0.88x as far as the true flow over 10 frames of a
-    slow pan on the held-out world, 0.96x re-aligned here). ref: (S, H, W, 1) gray, ref_idx (L,),
-    seed_uv (L, 2), cur: (H, W, 1) gray, uv (L, 2) chained positions. Returns the positions (L, 2):
-    the aligned one where it lowers the patch's error and moves at most ``cfg.klt_max_px``, else
+    slow pan on the held-out world, 0.96x re-aligned here). Returns the positions (L, 2): the
+    aligned one where it lowers the patch's error and moves at most ``cfg.klt_max_px``, else
     ``uv``. Along a direction the patch hardly constrains (structure-tensor eigenvalue below
     ``cfg.klt_rcond`` of the largest: an edge) the chained position is kept."""
     r = cfg.klt_radius
     if r <= 0:
         return uv
     L = uv.shape[0]
-    g = jnp.arange(-r, r + 1, dtype=uv.dtype)
-    offs = jnp.stack(jnp.meshgrid(g, g, indexing="xy"), -1).reshape(-1, 2)  # (P, 2)
-    P = offs.shape[0]
-    idx = jnp.repeat(ref_idx, P)
-
-    def at_ref(d):
-        return bilinear(ref, idx, (seed_uv[:, None] + offs + d).reshape(-1, 2))[:, 0].reshape(L, P)
-
-    def zero_mean(x):
-        return x - jnp.mean(x, -1, keepdims=True)
-
-    tmpl = zero_mean(at_ref(0.0))
-    one = jnp.eye(2, dtype=uv.dtype)
-    grad = jnp.stack([(at_ref(one[k]) - at_ref(-one[k])) * 0.5 for k in range(2)], -1)  # (L, P, 2)
-    lam, V = jnp.linalg.eigh(jnp.einsum("lpi,lpj->lij", grad, grad))
-    inv = jnp.where(lam >= cfg.klt_rcond * lam[:, -1:], 1.0 / jnp.maximum(lam, 1e-12), 0.0)
-    Hinv = jnp.einsum("lik,lk,ljk->lij", V, inv, V)
-    zero = jnp.zeros(L, jnp.int32)
+    n = 2 * r + 2
+    img = jnp.pad(cur[..., 0], r + 1, mode="edge")  # edge values: bilinear's clamping outside the image
 
     def residual(p):
-        return zero_mean(bilinear(cur[None], jnp.repeat(zero, P), (p[:, None] + offs).reshape(-1, 2))[:, 0]
-                         .reshape(L, P)) - tmpl
+        """Zero-mean bilinear patch around p minus the template: the patch's pixels share p's
+        fraction, so one (2r + 2)² block per track is gathered and interpolated."""
+        i0 = jnp.floor(p)
+        f = (p - i0)[:, None, None, :]
+        start = jnp.clip(i0.astype(jnp.int32) + 1, 0, jnp.asarray(img.shape[::-1]) - n)  # padded: +r+1, -r
+        block = jax.vmap(lambda s: jax.lax.dynamic_slice(img, (s[1], s[0]), (n, n)))(start)
+        fx, fy = f[..., 0], f[..., 1]
+        top = block[:, :-1, :-1] * (1 - fx) + block[:, :-1, 1:] * fx
+        bottom = block[:, 1:, :-1] * (1 - fx) + block[:, 1:, 1:] * fx
+        return _zero_mean((top * (1 - fy) + bottom * fy).reshape(L, -1)) - patches.template
 
-    def gn(_, p):
-        b = jnp.einsum("lpi,lp->li", grad, residual(p))
-        return p - jnp.einsum("lij,lj->li", Hinv, b)
+    def gn(_, carry):
+        p, r = carry
+        p = p - jnp.einsum("lij,lj->li", patches.hinv, jnp.einsum("lpi,lp->li", patches.grad, r))
+        return p, residual(p)
 
-    p = jax.lax.fori_loop(0, cfg.klt_iterations, gn, uv)
-    better = jnp.sum(residual(p) ** 2, -1) < jnp.sum(residual(uv) ** 2, -1)
+    r0 = residual(uv)
+    p, r = jax.lax.fori_loop(0, cfg.klt_iterations, gn, (uv, r0))
+    better = jnp.sum(r ** 2, -1) < jnp.sum(r0 ** 2, -1)
     ok = better & (jnp.linalg.norm(p - uv, axis=-1) <= cfg.klt_max_px) & jnp.all(jnp.isfinite(p), -1)
     return jnp.where(ok[:, None], p, uv)
 

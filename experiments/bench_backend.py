@@ -94,10 +94,8 @@ def bench_quick(args):
     @jax.jit
     def per_frame(lms, x, prev_flow):
         dyn, static = pipeline.static_mask(x, cfg)
-        win_images = jnp.broadcast_to(x.frame.image, (cfg.window, *x.frame.image.shape))  # seed frames' images
-        lms = pipeline.advance_landmarks(lms, prev_flow, static, jnp.int32(1), cfg, window_images=win_images,
-                                         image=x.frame.image)
-        lms = pipeline.seed_landmarks(lms, jnp.int32(0), x.frame.depth, x.frame.depth_conf, static,
+        lms = pipeline.advance_landmarks(lms, prev_flow, static, jnp.int32(1), cfg, image=x.frame.image)
+        lms = pipeline.seed_landmarks(lms, jnp.int32(0), x.frame.image, x.frame.depth, x.frame.depth_conf, static,
                                       x.frame.intrinsic, x.frame.cam_to_world, cfg)
         return lms, dyn
 

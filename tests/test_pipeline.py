@@ -7,7 +7,7 @@ import pytest
 import jax
 import jax.numpy as jnp
 
-from cm3d import pipeline
+from cm3d import pipeline, trajectory
 from cm3d.data import synthetic
 
 WORLD = synthetic.WorldConfig(height=48, width=64, supersample=1)
@@ -270,7 +270,8 @@ def test_prior_check_drops_tracks_that_move():
             uv[j, i] = q[:2] / q[2] + rng.normal(0, 0.02, 2)
             ov[j, i] = True
     lm_ = pipeline.Landmarks(uv=jnp.asarray(uv[:, 0]), alive=jnp.zeros(L, bool), seed=jnp.asarray(seed),
-                             obs_uv=jnp.asarray(uv), obs_valid=jnp.asarray(ov), points=jnp.asarray(pts))
+                             obs_uv=jnp.asarray(uv), obs_valid=jnp.asarray(ov), points=jnp.asarray(pts),
+                             patches=trajectory.SeedPatches.empty(L, cfg.track))
     win = pipeline.empty_window(cfg, 48, 64, 1, 1).replace(poses=jnp.asarray(poses),
                                                            intrinsic=jnp.broadcast_to(jnp.asarray(K), (W, 3, 3)),
                                                            valid=jnp.ones(W, bool))

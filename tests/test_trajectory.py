@@ -106,12 +106,12 @@ def test_align_to_seed_recovers_a_subpixel_shift_that_chaining_missed():
     seed = np.array([[20.0, 20.0], [35.5, 30.25], [50.0, 44.0], [30.0, 50.0], [65.0, 30.0]])
     chained = seed + shift + np.array([[0.6, 0.0], [0.0, -0.6], [-0.4, 0.45], [3.0, 0.0], [0.5, 0.0]])
     cfg = trajectory.TrackConfig()
-    args = (jnp.asarray(ref, jnp.float32)[None, ..., None], jnp.zeros(5, jnp.int32), jnp.asarray(seed, jnp.float32),
-            jnp.asarray(cur, jnp.float32)[..., None], jnp.asarray(chained, jnp.float32))
+    patches = trajectory.seed_patches(jnp.asarray(ref, jnp.float32)[..., None], jnp.asarray(seed, jnp.float32), cfg)
+    args = (patches, jnp.asarray(cur, jnp.float32)[..., None], jnp.asarray(chained, jnp.float32))
     out = np.asarray(trajectory.align_to_seed(*args, cfg))
     np.testing.assert_allclose(out[:3], seed[:3] + shift, atol=0.05)  # chained: 0.6 px off
     np.testing.assert_allclose(out[3:], chained[3:], atol=1e-6)  # beyond klt_max_px; a flat patch
-    np.testing.assert_allclose(np.asarray(jax.jit(trajectory.align_to_seed, static_argnums=5)(*args, cfg)), out,
+    np.testing.assert_allclose(np.asarray(jax.jit(trajectory.align_to_seed, static_argnums=3)(*args, cfg)), out,
                                atol=1e-5)
     off = trajectory.TrackConfig(klt_radius=0)
     with pytest.raises(ValueError, match="klt_rcond"):

@@ -19,21 +19,18 @@ def nearest_pixel(uv, h: int, w: int):
     return r, c
 
 
-def advance_landmarks(lm_: Landmarks, flow, static, slot, cfg: PipelineConfig, window_images=None,
-                      image=None) -> Landmarks:
+def advance_landmarks(lm_: Landmarks, flow, static, slot, cfg: PipelineConfig, image=None) -> Landmarks:
     """Follow live landmarks from the previous frame into slot ``slot`` with the previous flow
     (chained bilinear flow, as :func:`cm3d.trajectory.chain_tracks`), re-aligned to each landmark's
-    seed frame (:func:`cm3d.trajectory.align_to_seed`) given the window's images (W, h, w, 3) and
-    this frame's (h, w, 3); record the observation. A landmark stops at the border or on a dynamic
-    pixel."""
+    seed patch (:func:`cm3d.trajectory.align_to_seed`) in this frame's image (h, w, 3) when given;
+    record the observation. A landmark stops at the border or on a dynamic pixel."""
     h, w = static.shape
     T = cfg.track.track_length
     b = cfg.track.border * 0.5
     fl = trajectory.bilinear(flow[None], jnp.zeros(lm_.uv.shape[0], jnp.int32), lm_.uv)
     nxt = lm_.uv + fl
-    if window_images is not None and image is not None:
-        nxt = trajectory.align_to_seed(trajectory.gray(window_images), lm_.seed, lm_.obs_uv[:, 0],
-                                       trajectory.gray(image), nxt, cfg.track)
+    if image is not None:
+        nxt = trajectory.align_to_seed(lm_.patches, trajectory.gray(image), nxt, cfg.track)
     inside = (nxt[:, 0] >= b) & (nxt[:, 0] <= w - 1 - b) & (nxt[:, 1] >= b) & (nxt[:, 1] <= h - 1 - b)
     r, c = nearest_pixel(nxt, h, w)
     j = slot - lm_.seed
@@ -44,9 +41,10 @@ def advance_landmarks(lm_: Landmarks, flow, static, slot, cfg: PipelineConfig, w
                        obs_valid=lm_.obs_valid | put)
 
 
-def seed_landmarks(lm_: Landmarks, slot, depth, conf, static, K, pose, cfg: PipelineConfig) -> Landmarks:
+def seed_landmarks(lm_: Landmarks, slot, image, depth, conf, static, K, pose, cfg: PipelineConfig) -> Landmarks:
     """Seed the block of slot ``slot``: the most confident static pixel of each cell, lifted to
-    the world with the prior depth and the slot's initial pose (4, 4)."""
+    the world with the prior depth and the slot's initial pose (4, 4), with its patch of the
+    frame's image (h, w, 3) for the re-alignment (:func:`cm3d.trajectory.seed_patches`)."""
     uv, ok = trajectory.select_landmark_pixels(depth, conf, static, cfg.track)
     C = uv.shape[0]
     r, c = nearest_pixel(uv, *depth.shape)
@@ -58,8 +56,10 @@ def seed_landmarks(lm_: Landmarks, slot, depth, conf, static, K, pose, cfg: Pipe
     first = jnp.zeros((C, T, 2), uv.dtype).at[:, 0].set(uv)
     fvalid = jnp.zeros((C, T), bool).at[:, 0].set(ok)
     upd = lambda a, v: jax.lax.dynamic_update_slice_in_dim(a, v.astype(a.dtype), start, 0)  # noqa: E731
+    patches = trajectory.seed_patches(trajectory.gray(image), uv, cfg.track)
     return lm_.replace(uv=upd(lm_.uv, uv), alive=upd(lm_.alive, ok), obs_uv=upd(lm_.obs_uv, first),
-                       obs_valid=upd(lm_.obs_valid, fvalid), points=upd(lm_.points, pw))
+                       obs_valid=upd(lm_.obs_valid, fvalid), points=upd(lm_.points, pw),
+                       patches=jax.tree.map(upd, lm_.patches, patches))
 
 
 def landmark_observations(lm_: Landmarks, cfg: PipelineConfig) -> trajectory.Observations:

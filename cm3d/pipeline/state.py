@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from cm3d import memory
+from cm3d import memory, trajectory
 from cm3d.ops import descriptors
 from cm3d.pipeline.config import PipelineConfig
 from cm3d.pipeline.prepare import Inputs
@@ -38,7 +38,8 @@ class Landmarks:
     """Landmark tracks of the window: ``L = seed_blocks x cells``, ``T = track_length``.
 
     uv (L, 2) last tracked pixel; alive (L,); seed (L,) seeding slot; obs_uv (L, T, 2) and
-    obs_valid (L, T) observations at slots ``seed + j``; points (L, 3) lifted at seeding."""
+    obs_valid (L, T) observations at slots ``seed + j``; points (L, 3) lifted at seeding; patches
+    (:class:`cm3d.trajectory.SeedPatches`): each seed pixel's patch, for the re-alignment."""
 
     uv: Any
     alive: Any
@@ -46,6 +47,7 @@ class Landmarks:
     obs_uv: Any
     obs_valid: Any
     points: Any
+    patches: Any
 
 
 @struct.dataclass
@@ -102,7 +104,7 @@ def empty_landmarks(cfg: PipelineConfig, h: int, w: int) -> Landmarks:
                      seed=jnp.repeat(jnp.arange(cfg.seed_blocks, dtype=jnp.int32) * cfg.track.keyframe_every,
                                      (h // c) * (w // c)),
                      obs_uv=jnp.zeros((L, T, 2), jnp.float32), obs_valid=jnp.zeros((L, T), bool),
-                     points=jnp.zeros((L, 3), jnp.float32))
+                     points=jnp.zeros((L, 3), jnp.float32), patches=trajectory.SeedPatches.empty(L, cfg.track))
 
 
 def init_state(inputs: Inputs, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBank | None = None,

@@ -159,7 +159,7 @@ def step(state: MapState, inputs_t: Inputs, cfg: PipelineConfig = PipelineConfig
 
     # 2. static landmarks: follow the live ones into this frame, buffer the frame
     follow = functools.partial(advance_landmarks, flow=state.prev_flow, static=static, slot=s, cfg=cfg,
-                               window_images=st.window.image, image=f.image)
+                               image=f.image)
     lms = jax.lax.cond(s > 0, follow, lambda m: m, state.landmarks)
     st = st.replace(window=buffer_frame(st.window, s, inputs_t, init_pose, static, cfg), landmarks=lms)
 
@@ -174,7 +174,7 @@ def step(state: MapState, inputs_t: Inputs, cfg: PipelineConfig = PipelineConfig
 
     # seed landmarks at the seeding slots (slot 0 of a new window is this frame again)
     do_seed = (slot % cfg.track.keyframe_every == 0) & (slot < cfg.keyframe_interval)
-    lms = jax.lax.cond(do_seed, lambda m: seed_landmarks(m, slot, f.depth, f.depth_conf, static, f.intrinsic,
+    lms = jax.lax.cond(do_seed, lambda m: seed_landmarks(m, slot, f.image, f.depth, f.depth_conf, static, f.intrinsic,
                                                          st.window.poses[slot], cfg), lambda m: m, st.landmarks)
     new = st.replace(key=key, landmarks=lms, prev_flow=jnp.asarray(inputs_t.flow, jnp.float32), slot=slot + 1,
                      frames=state.frames + 1)
