@@ -268,13 +268,13 @@ def align_to_seed(patches: SeedPatches, cur, uv, cfg: TrackConfig = TrackConfig(
         return _zero_mean((top * (1 - fy) + bottom * fy).reshape(L, -1)) - patches.template
 
     def gn(_, carry):
-        p, r = carry
-        p = p - jnp.einsum("lij,lj->li", patches.hinv, jnp.einsum("lpi,lp->li", patches.grad, r))
+        p, res = carry
+        p = p - jnp.einsum("lij,lj->li", patches.hinv, jnp.einsum("lpi,lp->li", patches.grad, res))
         return p, residual(p)
 
-    r0 = residual(uv)
-    p, r = jax.lax.fori_loop(0, cfg.klt_iterations, gn, (uv, r0))
-    better = jnp.sum(r ** 2, -1) < jnp.sum(r0 ** 2, -1)
+    res0 = residual(uv)
+    p, res = jax.lax.fori_loop(0, cfg.klt_iterations, gn, (uv, res0))
+    better = jnp.sum(res ** 2, -1) < jnp.sum(res0 ** 2, -1)
     ok = better & (jnp.linalg.norm(p - uv, axis=-1) <= cfg.klt_max_px) & jnp.all(jnp.isfinite(p), -1)
     return jnp.where(ok[:, None], p, uv)
 
