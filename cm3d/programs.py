@@ -22,7 +22,7 @@ import numpy as np
 
 FORMAT = 1  # bump when the file layout changes
 _lock = threading.Lock()
-_state = {"dir": None, "source": None}
+_state = {"dir": None, "source": None}  # "dir": set at the end of the module, from the environment
 _loaded: dict = {}  # key -> jax.stages.Compiled, this process's programs
 
 
@@ -207,3 +207,8 @@ def dir_from_env(default) -> Path | None:
     if path is None:
         return None if default is None else Path(default)
     return None if path.lower() in ("", "0", "off", "none") else Path(path)
+
+
+# A process started with $CM3D_PROGRAM_CACHE set keeps its programs there from the start (an
+# experiment, a notebook, the test suite's scripts); unset, the library keeps them in memory.
+set_cache_dir(dir_from_env(None))

@@ -53,14 +53,19 @@ def test_sim3_exp_log_round_trip(seed):
 @given(st.integers(1, 40), st.integers(0, 10_000))
 def test_masked_median_matches_numpy(n, seed):
     rng = np.random.default_rng(seed)
-    x = rng.normal(size=(3, n)).astype(np.float32)
-    valid = rng.random((3, n)) < 0.6
-    got = np.asarray(robust.masked_median(x, valid))
+    # n values in a row padded to 40 (one shape, one compilation for every example)
+    x = rng.normal(size=(3, 40)).astype(np.float32)
+    valid = (rng.random((3, 40)) < 0.6) & (np.arange(40) < n)
+    got = np.asarray(_median(x, valid))
     for row in range(3):
         want = np.median(x[row][valid[row]]) if valid[row].any() else 0.0
         np.testing.assert_allclose(got[row], want, rtol=1e-6, atol=1e-6)
     # along another axis and under jit
-    np.testing.assert_allclose(jax.jit(robust.masked_median, static_argnums=2)(x.T, valid.T, 0), got, atol=1e-6)
+    np.testing.assert_allclose(_median_axis0(x.T, valid.T), got, atol=1e-6)
+
+
+_median = jax.jit(robust.masked_median)
+_median_axis0 = jax.jit(lambda x, v: robust.masked_median(x, v, 0))
 
 
 def test_mad_sigma_and_robust_sigma():
@@ -104,10 +109,13 @@ def test_masked_median_low_matches_statistics(n, seed):
     import statistics
 
     rng = np.random.default_rng(seed)
-    x = rng.normal(size=(4, n)).astype(np.float32)
-    valid = rng.random((4, n)) < 0.6
+    x = rng.normal(size=(4, 40)).astype(np.float32)
+    valid = (rng.random((4, 40)) < 0.6) & (np.arange(40) < n)  # n values per row, padded to one shape
     want = statistics.median_low(x[valid].tolist()) if valid.any() else 0.0
-    assert float(jax.jit(robust.masked_median_low)(x, valid)) == want
+    assert float(_MEDIAN_LOW(x, valid)) == want
+
+
+_MEDIAN_LOW = jax.jit(robust.masked_median_low)
 
 
 _KTH = jax.jit(robust.kth_smallest)

@@ -366,6 +366,9 @@ def _render(prim, K, cams, cams_next, pose, pose_next, *, height, width, supersa
     return jax.lax.map(frame, (cams, cams_next, pose, pose_next))
 
 
+RENDER_BLOCK = 8  # frames per call of the compiled renderer
+
+
 def render(prims: Primitives, cams: np.ndarray, cfg: WorldConfig):
     """Ray-cast a visit: (rgb uint8 (S,H,W,3), depth (S,H,W), object id (S,H,W), flow (S-1,H,W,2))."""
     K = intrinsics(cfg)
@@ -374,11 +377,16 @@ def render(prims: Primitives, cams: np.ndarray, cfg: WorldConfig):
     cams_next = np.concatenate([cams[1:], cams[-1:]])
     pose_next = np.concatenate([prims.pose[1:], prims.pose[-1:]])
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
-    rgb, depth, obj, flow = _render(prim, f32(K), f32(cams), f32(cams_next), f32(prims.pose),
-                                    f32(pose_next), height=cfg.height, width=cfg.width,
-                                    supersample=cfg.supersample)
-    rgb = np.asarray(jnp.round(rgb * 255.0)).astype(np.uint8)
-    return rgb, np.asarray(depth), np.asarray(obj), np.asarray(flow)[:-1]
+    # Fixed blocks of RENDER_BLOCK frames (the last one padded with its final frame): one compiled
+    # renderer per image size serves every sequence length (frames are rendered independently).
+    n = len(cams)
+    pad = lambda a: np.concatenate([a, np.repeat(a[-1:], -n % RENDER_BLOCK, 0)])  # noqa: E731
+    args = [pad(np.asarray(a)) for a in (cams, cams_next, prims.pose, pose_next)]
+    parts = [_render(prim, f32(K), *(f32(a[b:b + RENDER_BLOCK]) for a in args), height=cfg.height,
+                     width=cfg.width, supersample=cfg.supersample) for b in range(0, n, RENDER_BLOCK)]
+    rgb, depth, obj, flow = (np.concatenate([np.asarray(p[i]) for p in parts])[:n] for i in range(4))
+    rgb = np.round(rgb * np.float32(255.0)).astype(np.uint8)
+    return rgb, depth, obj, flow[:-1]
 
 
 def render_ground_truth(scene: Scene, visit: int, num_frames: int, cfg: WorldConfig = WorldConfig(),
