@@ -86,6 +86,46 @@ def test_disoccluded_band_is_not_dynamic_and_is_marked_occluded():
     assert occ[band].mean() > 0.9 and occ[~band].mean() < 0.01
 
 
+def test_pixels_beside_a_sensor_hole_are_not_judged():
+    """A depth sensor registered 4 px off the image (as 7-Scenes' Kinect): its map ends the strip at
+    column 66 and loses 66-67 (a hole, confidence 0, filled with the wall), while the image's strip
+    reaches column 69. Columns 68-69 move with the strip but their depth says wall: the cue without
+    the hole rule calls them dynamic; with it they are beside the hole and not judged."""
+    p0, p1, flow, _, _ = _scene()
+    depth, conf = np.array(p0.depth), np.ones((H, W), np.float32)
+    depth[:, 66:70] = 4.0
+    conf[:, 66:68] = 0.0
+    p0 = p0.replace(depth=jnp.asarray(depth), depth_conf=jnp.asarray(conf))
+    beside = np.zeros((H, W), bool)
+    beside[:, 68:70] = True
+    old = np.asarray(_cues(p0, p1, flow, NO_MATCHES, dataclasses.replace(CFG, hole_edges=False)).robust_mask)
+    assert old[beside].mean() > 0.8, "the registration error must trip the cue without the hole rule"
+    cues = _cues(p0, p1, flow, NO_MATCHES, CFG)
+    assert np.asarray(cues.robust_mask).sum() == 0
+    assert not np.asarray(cues.valid)[beside].any()  # not judged (the hole itself neither)
+
+
+@pytest.mark.parametrize("radius", [1, 2])
+def test_long_runs_equal_an_opening_by_line_segments(radius):
+    """The holes that count (a run of 2r+1 along a row, column or diagonal) are scipy's binary
+    opening by those four segments; 20 % random dropouts keep almost none, a band keeps all."""
+    from scipy import ndimage
+
+    from cm3d.motion.geometry_cue import long_runs
+
+    m = np.random.default_rng(radius).random((60, 80)) < 0.2
+    m[20:22, 5:70] = True
+    k = 2 * radius + 1
+    ref = np.zeros_like(m)
+    for se in (np.ones((1, k)), np.ones((k, 1)), np.eye(k), np.fliplr(np.eye(k))):
+        ref |= ndimage.binary_opening(m, structure=se.astype(bool))
+    got = np.asarray(jax.jit(long_runs, static_argnums=1)(jnp.asarray(m), radius))
+    np.testing.assert_array_equal(got, ref)
+    assert got[20:22, 5:70].all()
+    if radius == 2:
+        assert got[:18].sum() < 0.05 * m[:18].sum()
+
+
 def test_slow_mover_is_still_found():
     p0, p1, flow, mover, _ = _scene(mover_px=1.5)  # 1.5 px (under the wall parallax of 2 px) against 0.05 px noise
     m = np.asarray(_cues(p0, p1, flow, NO_MATCHES, CFG).robust_mask)

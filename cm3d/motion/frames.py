@@ -99,6 +99,7 @@ class MotionConfig:
     fb_occludes: bool = False  # an inconsistent pixel is not judged (else it is only left out of the pose fit)
     zbuffer_rel_tol: float = 0.05  # hidden: lands behind the partner's depth by more than this fraction
     edge_radius_px: int = 2  # the residual is to the ego flows of every depth within this radius (0: own depth)
+    hole_edges: bool = True  # pixels within edge_radius_px of a hole (confidence 0) spanning 2r+1 px are not judged
     two_pairs: bool = True  # with a second partner (t-1), dynamic = moving in every pair that judges it
     # appearance check (cm3d.motion.appearance): a candidate region is kept only where the images
     # reject the static hypothesis (ego-warp patch dissimilarity above the flow warp's by k robust
