@@ -32,12 +32,13 @@ GROUPED = {s for g in GROUPS for s in g}
 RUNS = GROUPS + [(s,) for s in SCRIPTS if s not in GROUPED]
 
 # One process runs the scripts of a group in order, each as its own __main__ with its own argv.
-_RUNNER = """
+MARK = "\n@@ cm3d smoke: "
+_RUNNER = f"MARK = {MARK!r}\n" + """
 import runpy, sys
 sys.path.insert(0, sys.argv[1])
 for script, out in zip(sys.argv[2::2], sys.argv[3::2]):
     sys.argv = [script, "--quick", "--json", out]
-    print(f"=== {script}", flush=True)
+    print(f"{MARK}{script}", flush=True)
     try:
         runpy.run_path(script, run_name="__main__")
     except SystemExit as err:
@@ -58,7 +59,7 @@ def test_experiment_quick(scripts, tmp_path):
     proc = subprocess.run([sys.executable, "-c", _RUNNER, str(ROOT / "experiments"), *args], cwd=ROOT,
                           capture_output=True, text=True, timeout=300 * len(scripts))
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
-    printed = proc.stdout.split("=== ")[1:]
+    printed = ("\n" + proc.stdout).split(MARK)[1:]
     assert len(printed) == len(scripts)
     for script, text, out in zip(scripts, printed, outs):
         assert text.split("\n", 1)[1].strip(), f"{script} prints a readable table"

@@ -26,10 +26,11 @@ def _program(x, y, cfg: _Cfg = _Cfg()):
 
 @pytest.fixture
 def cache(tmp_path):
+    before = programs.cache_dir()
     programs.set_cache_dir(tmp_path)
     programs.clear_memory()
     yield tmp_path
-    programs.set_cache_dir(None)
+    programs.set_cache_dir(before)  # the suite's folder ($CM3D_PROGRAM_CACHE), for the tests after these
     programs.clear_memory()
 
 
@@ -105,6 +106,7 @@ def test_a_damaged_file_is_compiled_afresh(cache):
 
 
 def test_without_a_folder_programs_stay_in_memory(tmp_path):
+    before = programs.cache_dir()
     programs.set_cache_dir(None)
     programs.clear_memory()
     x, y = _args()
@@ -112,6 +114,22 @@ def test_without_a_folder_programs_stay_in_memory(tmp_path):
     assert programs.compiled("p", _program, {"cfg": _Cfg()}, x, y)[1] == "memory"
     assert not list(tmp_path.iterdir())
     programs.clear_memory()
+    programs.set_cache_dir(before)
+
+
+def test_a_process_started_with_the_variable_uses_its_folder(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    code = "from cm3d import programs; print(programs.cache_dir())"
+    for value, want in ((str(tmp_path), str(tmp_path)), ("off", "None")):
+        env = {**os.environ, "CM3D_PROGRAM_CACHE": value}
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+        assert out.stdout.strip() == want
+    env = {k: v for k, v in os.environ.items() if k != "CM3D_PROGRAM_CACHE"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "None"  # the library's default: in memory
 
 
 def test_the_prefetched_piece_is_shaped_like_the_prepared_one():

@@ -60,7 +60,7 @@ def test_masked_median_matches_numpy(n, seed):
     for row in range(3):
         want = np.median(x[row][valid[row]]) if valid[row].any() else 0.0
         np.testing.assert_allclose(got[row], want, rtol=1e-6, atol=1e-6)
-    # along another axis and under jit
+    # along another axis
     np.testing.assert_allclose(_median_axis0(x.T, valid.T), got, atol=1e-6)
 
 
