@@ -106,12 +106,12 @@ def test_pixels_beside_a_sensor_hole_are_not_judged():
 
 
 @pytest.mark.parametrize("radius", [1, 2])
-def test_long_runs_equal_an_opening_by_line_segments(radius):
+def test_line_opening_equals_scipy_openings_by_line_segments(radius):
     """The holes that count (a run of 2r+1 along a row, column or diagonal) are scipy's binary
     opening by those four segments; 20 % random dropouts keep almost none, a band keeps all."""
     from scipy import ndimage
 
-    from cm3d.motion.geometry_cue import long_runs
+    from cm3d.ops.components import line_opening
 
     m = np.random.default_rng(radius).random((60, 80)) < 0.2
     m[20:22, 5:70] = True
@@ -119,7 +119,7 @@ def test_long_runs_equal_an_opening_by_line_segments(radius):
     ref = np.zeros_like(m)
     for se in (np.ones((1, k)), np.ones((k, 1)), np.eye(k), np.fliplr(np.eye(k))):
         ref |= ndimage.binary_opening(m, structure=se.astype(bool))
-    got = np.asarray(jax.jit(long_runs, static_argnums=1)(jnp.asarray(m), radius))
+    got = np.asarray(jax.jit(line_opening, static_argnums=1)(jnp.asarray(m), radius))
     np.testing.assert_array_equal(got, ref)
     assert got[20:22, 5:70].all()
     if radius == 2:

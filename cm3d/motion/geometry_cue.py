@@ -7,8 +7,6 @@ on log residual above a noise floor. The MonST3R-style baseline uses a fixed 1 p
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 from flax import struct
@@ -16,7 +14,7 @@ from flax import struct
 from cm3d.motion.frames import FramePrior, MotionConfig
 from cm3d.motion.occlusion import depth_range_residual, forward_backward_consistent, visible_in_partner
 from cm3d.ops import camera, robust, se3
-from cm3d.ops.components import dilate
+from cm3d.ops.components import dilate, line_opening
 from cm3d.ops.otsu import threshold_otsu
 from cm3d.ops.robust import masked_median_low
 from cm3d.solvers.camera_motion import fit_camera_motion
@@ -65,26 +63,6 @@ def refine_relative_pose(depth, K0, K1, flow, rel_init, weight, cfg: MotionConfi
     return T[0]
 
 
-def _shift(x, dy: int, dx: int):
-    """``x`` (H, W) moved by (dy, dx): out[i, j] = x[i - dy, j - dx], False outside."""
-    H, W = x.shape
-    r = max(abs(dy), abs(dx))
-    p = jnp.pad(x, r)
-    return p[r - dy:r - dy + H, r - dx:r - dx + W]
-
-
-def long_runs(mask, radius: int):
-    """(H, W) bool: the pixels of ``mask`` on a straight run of at least ``2 radius + 1`` set pixels
-    (horizontal, vertical or diagonal): an opening of ``mask`` by the four line segments of that
-    length. A band or blob of holes keeps its pixels; isolated dropouts (random pixels) lose them."""
-    out = jnp.zeros_like(mask)
-    offs = range(-radius, radius + 1)
-    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        full = functools.reduce(jnp.logical_and, [_shift(mask, k * dy, k * dx) for k in offs])
-        out |= functools.reduce(jnp.logical_or, [_shift(full, k * dy, k * dx) for k in offs])
-    return out
-
-
 @struct.dataclass
 class GeometryCue:
     """The residual-flow cue of one frame pair: mask, residual (H, W) px, valid (H, W), the Otsu
@@ -125,7 +103,7 @@ def geometry_motion_cue(prior_t: FramePrior, prior_t2: FramePrior, flow, cfg: Mo
         # beside a sensor hole (filled, confidence 0) that spans the edge window, the depth range
         # within the edge radius is unknown: such holes open along depth edges (the sensor's shadow,
         # thin structures, a depth map registered off the image); isolated dropouts do not count
-        conf_ok &= ~dilate(long_runs(~measured, cfg.edge_radius_px), cfg.edge_radius_px)
+        conf_ok &= ~dilate(line_opening(~measured, cfg.edge_radius_px), cfg.edge_radius_px)
     consistent = jnp.ones_like(conf_ok)
     if cfg.occlusion and flow_back is not None:
         consistent = forward_backward_consistent(flow, flow_back, cfg.fb_alpha, cfg.fb_beta_px2)

@@ -6,6 +6,8 @@ component's first pixel (the *root*), -1 outside, so a per-region quantity is a 
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
@@ -35,6 +37,27 @@ def opening(mask, radius: int = 1):
 def closing(mask, radius: int = 1):
     """Dilation then erosion: fills holes and gaps narrower than ``2r+1``."""
     return erode(dilate(mask, radius), radius)
+
+
+def _shift(x, dy: int, dx: int):
+    """``x`` (H, W) moved by (dy, dx): out[i, j] = x[i - dy, j - dx], False outside."""
+    H, W = x.shape
+    r = max(abs(dy), abs(dx))
+    p = jnp.pad(x, r)
+    return p[r - dy:r - dy + H, r - dx:r - dx + W]
+
+
+def line_opening(mask, radius: int):
+    """(H, W) bool: the pixels of ``mask`` on a straight run of at least ``2 radius + 1`` set pixels
+    (horizontal, vertical or diagonal), i.e. the union of the openings by the four line segments of
+    that length (pixels beyond the border count as unset). Bands and blobs keep their pixels,
+    isolated specks lose them."""
+    out = jnp.zeros_like(mask)
+    offs = range(-radius, radius + 1)
+    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        full = functools.reduce(jnp.logical_and, [_shift(mask, k * dy, k * dx) for k in offs])
+        out |= functools.reduce(jnp.logical_or, [_shift(full, k * dy, k * dx) for k in offs])
+    return out
 
 
 def _run_ids(mask):
