@@ -116,7 +116,10 @@ def bank_map(bank, result, earlier_only: bool):
 
 
 def scene_rows(scene: int, frames: int, wcfg, quick: bool, use_cache: bool = False) -> dict:
-    return reconstruction_row(scene, revisit_runs(scene, frames, wcfg, use_cache=use_cache), quick)
+    # --quick: the memory program on an empty bank stands in for the memory-off one (one compilation
+    # fewer; camera_pose.py's smoke run does the same, and a smoke run's figures mean nothing)
+    return reconstruction_row(scene, revisit_runs(scene, frames, wcfg, use_cache=use_cache,
+                                                  empty_bank_baseline=quick), quick)
 
 
 def reconstruction_row(scene: int, run: dict, quick: bool) -> dict:
