@@ -213,7 +213,8 @@ def parse_args(doc: str):
     ap.add_argument("--scenes", type=int, default=3, help="scenes 0 .. N-1, two visits each")
     ap.add_argument("--frames", type=int, default=40, help="frames per visit")
     ap.add_argument("--quick", action="store_true", help="48x64, one scene, 8 frames per visit (a smoke test; "
-                    "camera_pose.py and reconstruction.py: the no-memory column is the memory program on an empty bank)")
+                    "camera_pose.py and reconstruction.py: the no-memory column is the memory program on an "
+                    "empty bank)")
     ap.add_argument("--json", default=None, metavar="PATH")
     ap.add_argument("--no-cache", action="store_true", help="render again instead of using ~/.cache/cm3d/paper_tables")
     args = ap.parse_args()
