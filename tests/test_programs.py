@@ -109,12 +109,14 @@ def test_without_a_folder_programs_stay_in_memory(tmp_path):
     before = programs.cache_dir()
     programs.set_cache_dir(None)
     programs.clear_memory()
-    x, y = _args()
-    assert programs.compiled("p", _program, {"cfg": _Cfg()}, x, y)[1] == "compiled"
-    assert programs.compiled("p", _program, {"cfg": _Cfg()}, x, y)[1] == "memory"
-    assert not list(tmp_path.iterdir())
-    programs.clear_memory()
-    programs.set_cache_dir(before)
+    try:
+        x, y = _args()
+        assert programs.compiled("p", _program, {"cfg": _Cfg()}, x, y)[1] == "compiled"
+        assert programs.compiled("p", _program, {"cfg": _Cfg()}, x, y)[1] == "memory"
+        assert not list(tmp_path.iterdir())
+    finally:  # the suite's folder for the tests after this one, pass or fail
+        programs.clear_memory()
+        programs.set_cache_dir(before)
 
 
 def test_a_process_started_with_the_variable_uses_its_folder(tmp_path):
