@@ -9,7 +9,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from cm3d import memory, programs
+from cm3d import programs
 from cm3d.data.atomic import atomic_write, check_writable_folder
 from cm3d.data.tum import write_tum
 from cm3d.ops import camera, sim3
@@ -225,11 +225,10 @@ def memory_points(bank, result):
     w = acc[-1] if acc else wins[-1]
     m = w.recalled_map if acc else w.map_id
     T = w.transform if acc else np.eye(4)
-    cloud = memory.map_cloud(bank, m)
-    ok = np.asarray(cloud.valid)
-    pts = sim3.apply(sim3.inverse(np.asarray(T, np.float64)), np.asarray(cloud.points, np.float64)[ok])
+    ok = np.asarray(bank.point_valid)[m]  # NumPy views of the bank: no JAX dispatch on the host
+    pts = sim3.apply(sim3.inverse(np.asarray(T, np.float64)), np.asarray(bank.points)[m][ok].astype(np.float64))
     created = {x.map_id for x in result.windows if x.created_map}
-    return pts.astype(np.float32), np.asarray(cloud.colors)[ok], bool(acc) and m not in created
+    return pts.astype(np.float32), np.asarray(bank.colors)[m][ok], bool(acc) and m not in created
 
 
 def window_line(w) -> str:

@@ -214,6 +214,16 @@ def test_umeyama_recovers_sim3_and_matches_evo():
             np.testing.assert_allclose(r, r_e, atol=1e-10)
             np.testing.assert_allclose(tt, t_e, atol=1e-10)
             assert float(c) == pytest.approx(c_e, rel=1e-10)
+    # NumPy inputs (host code) take the NumPy path: NumPy float64 out, no JAX, the same fit as evo's
+    for ws in (True, False):
+        r_e, t_e, c_e = umeyama_alignment(src[0][mask].T, noisy[mask].T, ws)
+        c, r, tt = umeyama(src_bad, noisy, mask, ws)
+        assert all(isinstance(v, np.ndarray) and v.dtype == np.float64 for v in (c, r, tt))
+        np.testing.assert_allclose(r, r_e, atol=1e-10)
+        np.testing.assert_allclose(tt, t_e, atol=1e-10)
+        assert float(c) == pytest.approx(c_e, rel=1e-10)
+    c, r, tt = umeyama(src[1].astype(np.float32), dst[1].astype(np.float32))  # float32 stays float32
+    assert r.dtype == np.float32 and float(c) == pytest.approx(s[1], rel=1e-4)
 
 
 def _evo_synthetic(gt, est):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 from cm3d.ops import sim3
 
@@ -15,26 +16,32 @@ def umeyama(src, dst, weights=None, with_scale: bool = True):
     equals evo's ``umeyama_alignment`` on the valid points. Degenerate inputs (no weight, or all
     valid points equal) give ``s = 1`` and a finite R, never NaN; fewer than 3 non-collinear points
     leave the rotation about the degenerate axis arbitrary.
+
+    NumPy inputs (all of them ``np.ndarray``: host code) are fitted with NumPy in their own precision,
+    with no JAX dispatch (a process pays no compilation for a one-off host fit); anything else with
+    ``jax.numpy`` (jittable, vmappable, differentiable).
     """
-    src = jnp.asarray(src)
-    dst = jnp.asarray(dst, dtype=src.dtype)
-    w = jnp.ones(src.shape[:1], src.dtype) if weights is None else jnp.asarray(weights).astype(src.dtype)
-    w = w / jnp.maximum(jnp.sum(w), jnp.finfo(src.dtype).tiny)
-    mu_s = jnp.sum(w[:, None] * src, axis=0)
-    mu_d = jnp.sum(w[:, None] * dst, axis=0)
+    host = all(isinstance(a, np.ndarray) for a in (src, dst) + (() if weights is None else (weights,)))
+    xp = np if host else jnp
+    src = xp.asarray(src)
+    dst = xp.asarray(dst, dtype=src.dtype)
+    w = xp.ones(src.shape[:1], src.dtype) if weights is None else xp.asarray(weights).astype(src.dtype)
+    w = w / xp.maximum(xp.sum(w), xp.finfo(src.dtype).tiny)
+    mu_s = xp.sum(w[:, None] * src, axis=0)
+    mu_d = xp.sum(w[:, None] * dst, axis=0)
     xs = src - mu_s
     xd = dst - mu_d
-    var_s = jnp.sum(w * jnp.sum(xs * xs, axis=-1))
-    cov = jnp.einsum("n,ni,nj->ij", w, xd, xs)
-    U, D, Vt = jnp.linalg.svd(cov)
-    sign = jnp.where(jnp.linalg.det(U) * jnp.linalg.det(Vt) < 0, -1.0, 1.0).astype(src.dtype)
-    S = jnp.array([1.0, 1.0, 0.0], src.dtype) + jnp.array([0.0, 0.0, 1.0], src.dtype) * sign
+    var_s = xp.sum(w * xp.sum(xs * xs, axis=-1))
+    cov = xp.einsum("n,ni,nj->ij", w, xd, xs)
+    U, D, Vt = xp.linalg.svd(cov)
+    sign = xp.where(xp.linalg.det(U) * xp.linalg.det(Vt) < 0, -1.0, 1.0).astype(src.dtype)
+    S = xp.array([1.0, 1.0, 0.0], src.dtype) + xp.array([0.0, 0.0, 1.0], src.dtype) * sign
     R = (U * S[None, :]) @ Vt
     if with_scale:
         ok = var_s > 0
-        s = jnp.where(ok, jnp.sum(D * S) / jnp.where(ok, var_s, 1.0), 1.0)
+        s = xp.where(ok, xp.sum(D * S) / xp.where(ok, var_s, 1.0), 1.0)
     else:
-        s = jnp.ones((), src.dtype)
+        s = xp.ones((), src.dtype)
     t = mu_d - s * (R @ mu_s)
     return s, R, t
 
