@@ -14,13 +14,15 @@ import jaxlie
 import numpy as np
 
 
-def _xp(*arrays):
+def array_module(*arrays):
+    """NumPy when every argument is a NumPy array or scalar (host code keeps its precision and pays no
+    JAX dispatch), else ``jax.numpy``."""
     return np if all(isinstance(a, (np.ndarray, np.generic, float, int)) for a in arrays) else jnp
 
 
 def scale(A):
     """Scale ``s`` (...,) of Sim(3) matrices (..., 4, 4) or their linear parts (..., 3, 3)."""
-    xp = _xp(A)
+    xp = array_module(A)
     return xp.cbrt(xp.linalg.det(A[..., :3, :3]))
 
 
@@ -31,7 +33,7 @@ def rotation(A):
 
 def from_parts(s, R, t):
     """``[s R, t; 0 1]`` (..., 4, 4) from scale (...,), rotation (..., 3, 3), translation (..., 3)."""
-    xp = _xp(s, R, t)
+    xp = array_module(s, R, t)
     s = xp.asarray(s)
     top = xp.concatenate([s[..., None, None] * R, t[..., :, None]], -1)
     bottom = xp.broadcast_to(xp.asarray([0.0, 0.0, 0.0, 1.0], dtype=top.dtype), top.shape[:-2] + (1, 4))
@@ -40,13 +42,13 @@ def from_parts(s, R, t):
 
 def apply(A, x):
     """``s R x + t`` for points x (..., N, 3) and a transform A (..., 4, 4)."""
-    xp = _xp(A, x)
+    xp = array_module(A, x)
     return xp.einsum("...ij,...nj->...ni", A[..., :3, :3], x) + A[..., None, :3, 3]
 
 
 def inverse(A):
     """Inverse (..., 4, 4): ``[R^T / s, -R^T t / s]``."""
-    xp = _xp(A)
+    xp = array_module(A)
     s = scale(A)
     Ri = xp.swapaxes(A[..., :3, :3], -1, -2) / (s * s)[..., None, None]
     t = -xp.einsum("...ij,...j->...i", Ri, A[..., :3, 3])
@@ -71,6 +73,6 @@ def log(A):
 
 def to_rigid(A):
     """The rigid part ``[R, t]`` of ``[s R, t]`` (..., 4, 4)."""
-    xp = _xp(A)
+    xp = array_module(A)
     s = scale(A)
     return from_parts(xp.ones_like(s), rotation(A), A[..., :3, 3])

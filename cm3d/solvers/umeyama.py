@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import jax.numpy as jnp
-import numpy as np
-
 from cm3d.ops import sim3
 
 
@@ -17,12 +14,11 @@ def umeyama(src, dst, weights=None, with_scale: bool = True):
     valid points equal) give ``s = 1`` and a finite R, never NaN; fewer than 3 non-collinear points
     leave the rotation about the degenerate axis arbitrary.
 
-    NumPy inputs (all of them ``np.ndarray``: host code) are fitted with NumPy in their own precision,
-    with no JAX dispatch (a process pays no compilation for a one-off host fit); anything else with
-    ``jax.numpy`` (jittable, vmappable, differentiable).
+    NumPy inputs (every argument NumPy: host code, :func:`cm3d.ops.sim3.array_module`) are fitted with
+    NumPy in their own precision, with no JAX dispatch (a process pays no compilation for a one-off host
+    fit); anything else with ``jax.numpy`` (jittable, vmappable, differentiable).
     """
-    host = all(isinstance(a, np.ndarray) for a in (src, dst) + (() if weights is None else (weights,)))
-    xp = np if host else jnp
+    xp = sim3.array_module(src, dst, *(() if weights is None else (weights,)))
     src = xp.asarray(src)
     dst = xp.asarray(dst, dtype=src.dtype)
     w = xp.ones(src.shape[:1], src.dtype) if weights is None else xp.asarray(weights).astype(src.dtype)
