@@ -6,11 +6,14 @@ configuration's ``repr``, the arguments' tree structure, shapes and dtypes, the 
 versions, the backend (platform, version, device kind and count), the x64 flag, ``$XLA_FLAGS`` and
 the source of every ``cm3d`` module; a file whose stored key differs is never loaded (it is compiled afresh and
 overwritten). Without a folder (:func:`set_cache_dir` ``None``, the library's default) a program is
-compiled in memory once per process, like ``jax.jit``. Host side only: nothing here is traced."""
+compiled in memory once per process, like ``jax.jit``. A program JAX serves from its persistent
+compilation cache is stored too, with the cache entry's own bytes. Host side only: nothing here is
+traced."""
 
 from __future__ import annotations
 
 import hashlib
+import io
 import os
 import pickle
 import threading
@@ -19,6 +22,8 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from jax._src.lib import _jax, xla_client
+from jax.experimental import serialize_executable
 
 FORMAT = 1  # bump when the file layout changes
 _lock = threading.Lock()
@@ -27,6 +32,33 @@ _loaded: dict = {}  # key -> jax.stages.Compiled, this process's programs
 
 
 _thread = threading.local()
+
+
+def _install_hit_recorder() -> bool:
+    """Wrap JAX's persistent-cache reader so that :func:`compiled` can keep the bytes of an
+    executable JAX took from that cache. Such an executable re-serialised by
+    ``serialize_executable.serialize`` loses kernels on XLA:CPU (jax 0.10: the loaded copy fails
+    with "Function wrapped_iota not found"); the cache entry's own bytes load and run (JAX loads
+    them the same way). Records only while :func:`compiled` compiles in this thread; without the
+    reader (another jax) nothing is recorded and such a program is not stored."""
+    try:
+        from jax._src import compilation_cache as cc
+
+        read = cc.extract_executable_and_time
+    except (ImportError, AttributeError):
+        return False
+
+    def recording(blob):
+        serialized, compile_time = read(blob)
+        if getattr(_thread, "recording", None) is not None:
+            _thread.recording.append(serialized)
+        return serialized, compile_time
+
+    cc.extract_executable_and_time = recording
+    return True
+
+
+_HIT_RECORDER = _install_hit_recorder()
 
 
 def _count_hit(event: str, **_) -> None:
@@ -111,8 +143,6 @@ def _runtime_ready() -> None:
 
 
 def _load(path: Path, key: str):
-    from jax.experimental import serialize_executable
-
     try:
         with open(path, "rb") as f:
             stored_key, payload, in_tree, out_tree = pickle.load(f)
@@ -133,13 +163,43 @@ def _load(path: Path, key: str):
         return None
 
 
-def _store(path: Path, key: str, compiled) -> None:
-    from jax.experimental import serialize_executable
+class _RawPickler(serialize_executable._JaxPjrtPickler):
+    """``serialize_executable``'s pickler, with the program's one executable written as the given
+    bytes (``raw``, JAX's persistent-cache entry) instead of re-serialised."""
 
+    def __init__(self, file, raw: bytes):
+        super().__init__(file)
+        self.raw, self.used = raw, 0
+
+    def persistent_id(self, obj):
+        if isinstance(obj, (xla_client.LoadedExecutable, _jax.Executable)):
+            self.used += 1
+            return ("exec", self.raw)
+        return super().persistent_id(obj)
+
+
+def _serialize(compiled, raw: bytes | None) -> tuple[bytes, object, object]:
+    """``serialize_executable.serialize(compiled)``; with ``raw``, the executable's bytes as JAX's
+    persistent cache holds them."""
+    if raw is None:
+        return serialize_executable.serialize(compiled)
+    unloaded = getattr(compiled._executable, "_unloaded_executable", None)
+    if unloaded is None or compiled._params.const_args:
+        raise ValueError("compilation does not support serialization")
+    args_info_flat, in_tree = jax.tree.flatten(compiled.args_info)
+    with io.BytesIO() as f:
+        pickler = _RawPickler(f, raw)
+        pickler.dump((unloaded, args_info_flat, compiled._no_kwargs))
+        if pickler.used != 1:
+            raise ValueError(f"{pickler.used} executables in the program, one expected")
+        return f.getvalue(), in_tree, compiled.out_tree
+
+
+def _store(path: Path, key: str, compiled, raw: bytes | None = None) -> None:
     from cm3d.data.atomic import atomic_write
 
     try:
-        payload, in_tree, out_tree = serialize_executable.serialize(compiled)
+        payload, in_tree, out_tree = _serialize(compiled, raw)
         blob = pickle.dumps((key, payload, in_tree, out_tree), protocol=pickle.HIGHEST_PROTOCOL)
         with atomic_write(path) as f:
             f.write(blob)
@@ -161,13 +221,16 @@ def compiled(name: str, fn, static: dict, *args):
         prog = _load(_path(name, key), key) if _state["dir"] is not None else None
         if prog is None:
             how = "compiled"
-            hits = _hits()
-            prog = fn.lower(*args, **static).compile()
-            # An executable JAX took from its persistent compilation cache serialises without some
-            # of its kernels on XLA:CPU (jax 0.10: the loaded copy fails with "Function
-            # wrapped_slice not found"): store only what XLA compiled here and now.
-            if _state["dir"] is not None and _hits() == hits:
-                _store(_path(name, key), key, prog)
+            hits, _thread.recording = _hits(), []
+            try:
+                prog = fn.lower(*args, **static).compile()
+            finally:
+                served, _thread.recording = _thread.recording, None
+            if _state["dir"] is not None:
+                if _hits() == hits:  # compiled here and now
+                    _store(_path(name, key), key, prog)
+                elif len(served) == 1:  # from JAX's persistent cache: store the entry's own bytes
+                    _store(_path(name, key), key, prog, served[0])
         _loaded[key] = prog
         return prog, how
 

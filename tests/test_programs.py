@@ -149,29 +149,34 @@ def test_the_prefetched_piece_is_shaped_like_the_prepared_one():
     assert programs.program_key("p", (), spec) == programs.program_key("p", (), x)
 
 
-def test_a_persistent_cache_hit_is_not_stored(cache):
-    """JAX's persistent cache serves an executable that serialises without some kernels (it failed
-    to run when loaded: "Function wrapped_slice not found"): such a program stays in memory only
-    (a freshly compiled one is stored: test_loaded_program_equals_tracing_afresh)."""
+def test_a_persistent_cache_hit_is_stored_with_its_own_bytes(cache):
+    """An executable JAX serves from its persistent cache re-serialises without some kernels (loaded,
+    it failed with "Function wrapped_iota not found"), and a process whose program key is new (a
+    source edit leaves the HLO unchanged) meets only such hits. compiled() stores the cache entry's
+    own bytes: the stored program loads in a fresh state and gives the plain jit's results bitwise."""
     from jax._src import compilation_cache
 
-    if not compilation_cache.is_cache_used(jax.devices()[0].client):
-        pytest.skip("JAX's persistent compilation cache is off in this run (conftest turns it on)")
-    f = jax.jit(lambda x: jnp.cumsum(x[3:17] * 2.0)[::2])  # a program of its own: slices
+    assert programs._HIT_RECORDER
+    assert compilation_cache.is_cache_used(jax.devices()[0].client), "conftest turns JAX's cache on"
+    f = jax.jit(lambda x: (jnp.cumsum(x[3:17] * 2.0)[::2], jnp.arange(5.0) * x[0]))  # slices, an iota
     x = jnp.arange(32, dtype=jnp.float32)
-    want = np.cumsum(np.arange(3, 17) * 2.0)[::2]
     old = (jax.config.jax_persistent_cache_min_compile_time_secs, jax.config.jax_persistent_cache_min_entry_size_bytes)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     try:
+        want = f.lower(x).compile()(x)  # into JAX's persistent cache (or from it, on a rerun)
+        jax.clear_caches()
         hits = programs._hits()
-        jax.clear_caches()
-        np.testing.assert_allclose(f.lower(x).compile()(x), want)  # into JAX's persistent cache
-        jax.clear_caches()
         prog, how = programs.compiled("sliced", f, {}, x)  # its persistent-cache hit
         assert how == "compiled" and programs._hits() > hits
-        np.testing.assert_allclose(prog(x), want)
-        assert not list(cache.glob("sliced-*")), "an executable from JAX's cache was stored"
+        assert _equal(prog(x), want)
+        assert len(list(cache.glob("sliced-*.jaxexe"))) == 1, "the cache hit was not stored"
+        programs.clear_memory()
+        jax.clear_caches()
+        prog, how = programs.compiled("sliced", f, {}, x)
+        assert how == "loaded"
+        x2 = jnp.linspace(-3.0, 5.0, 32, dtype=jnp.float32)
+        assert _equal(prog(x2), f(x2))
     finally:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", old[0])
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", old[1])
