@@ -97,7 +97,8 @@ def _compile_cache() -> None:
 
     try:
         jax.config.update("jax_compilation_cache_dir", path)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 2.0)
+        if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:  # JAX's own variable wins
+            jax.config.update("jax_persistent_cache_min_compile_time_secs", 2.0)
     except Exception:  # noqa: BLE001  an older jax without the option: just compile
         pass
 

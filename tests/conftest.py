@@ -17,6 +17,10 @@ os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path(tempfile.gettempdir(
 # directory is part of a program's cache key (JAX's compile options name XLA caches inside it), so
 # one directory for everything is what lets a smoke run reuse the program a test compiled.
 os.environ["CM3D_JAX_CACHE"] = os.environ["JAX_COMPILATION_CACHE_DIR"]
+# Every program into that cache, not only those over JAX's default 1 s of compile time: the suite's
+# ~20 processes compile thousands of small programs (eager operations, helpers; 6600 compiles under
+# 1 s, 310 s of CPU in one run), many of them the same in several processes.
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 # The CLI's stored programs (cm3d.programs, default ~/.cache/cm3d/programs): per run too, never the user's.
 os.environ.setdefault("CM3D_PROGRAM_CACHE", str(Path(tempfile.gettempdir()) / f"cm3d-test-programs-{_RUN}"))
 
