@@ -26,6 +26,7 @@ from jax._src.lib import _jax, xla_client
 from jax.experimental import serialize_executable
 
 FORMAT = 1  # bump when the file layout changes
+KEEP = 12  # stored files per program name: the most recently stored or loaded (older source versions go)
 _lock = threading.Lock()
 _state = {"dir": None, "source": None}  # "dir": set at the end of the module, from the environment
 _loaded: dict = {}  # key -> jax.stages.Compiled, this process's programs
@@ -154,6 +155,10 @@ def _load(path: Path, key: str):
         return None
     if stored_key != key:
         return None
+    try:
+        os.utime(path)  # used: the last to be pruned
+    except OSError:
+        pass
     _runtime_ready()
     try:
         return serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
@@ -203,8 +208,24 @@ def _store(path: Path, key: str, compiled, raw: bytes | None = None) -> None:
         blob = pickle.dumps((key, payload, in_tree, out_tree), protocol=pickle.HIGHEST_PROTOCOL)
         with atomic_write(path) as f:
             f.write(blob)
+        _prune(path)
     except Exception as err:  # noqa: BLE001  a cache that cannot be written only costs time
         warnings.warn(f"program cache: could not write {path} ({type(err).__name__}: {err})", stacklevel=3)
+
+
+def _prune(path: Path) -> None:
+    """Keep the :data:`KEEP` most recently used files of ``path``'s program name (every source edit
+    or upgrade stores new ones: the folder stays bounded)."""
+    name = path.name[: -len("-") - 40 - len(".jaxexe")]
+    files = []
+    for p in path.parent.glob(f"{name}-*.jaxexe"):
+        if len(p.name) == len(path.name):  # this name's files only (another name may share the prefix)
+            try:
+                files.append((p.stat().st_mtime, p))
+            except FileNotFoundError:  # removed by another process meanwhile
+                pass
+    for _, p in sorted(files, reverse=True)[KEEP:]:
+        p.unlink(missing_ok=True)
 
 
 def compiled(name: str, fn, static: dict, *args):

@@ -180,3 +180,26 @@ def test_a_persistent_cache_hit_is_stored_with_its_own_bytes(cache):
     finally:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", old[0])
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", old[1])
+
+
+def test_the_folder_keeps_the_most_recently_used_programs_per_name(cache, monkeypatch):
+    """Every source edit stores new files: each name keeps its programs.KEEP most recently stored or
+    loaded ones, and other names' files are untouched."""
+    import os
+
+    monkeypatch.setattr(programs, "KEEP", 3)
+    x, y = _args()
+    programs.compiled("q", _program, {"cfg": _Cfg()}, x, y)  # another name: never pruned by "p"
+    sizes = (8, 16, 24, 32, 40)
+    for n in sizes[:3]:
+        programs.compiled("p", _program, {"cfg": _Cfg()}, x[:n], y)
+    first = programs._path("p", programs.program_key("p", (("cfg", _Cfg()),), (x[:8], y)))
+    for f in cache.glob("*.jaxexe"):  # distinct times on a coarse clock: the order they were stored
+        os.utime(f, (1000.0, 1000.0 + (0 if f == first else 1)))
+    programs.clear_memory()
+    assert programs.compiled("p", _program, {"cfg": _Cfg()}, x[:8], y)[1] == "loaded"  # now the newest
+    for n in sizes[3:]:
+        programs.compiled("p", _program, {"cfg": _Cfg()}, x[:n], y)
+    kept = sorted(cache.glob("p-*.jaxexe"))
+    assert len(kept) == 3 and first in kept
+    assert len(list(cache.glob("q-*.jaxexe"))) == 1
