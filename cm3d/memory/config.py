@@ -70,7 +70,7 @@ class MemoryConfig:
     max_maps: int = 64
     max_points: int = 8192
     max_keyframes: int = 16
-    max_keypoints: int = 512  # 3D keypoints (local descriptors lifted to the map frame) per map
+    max_keypoints: int = 1024  # 3D keypoints (local descriptors lifted to the map frame) per map (the benchmark's)
     max_floor_keypoints: int = 0  # floor orthophoto keypoints per map (ops.keypoints.floor_features; 0: none)
     image_dim: int = descriptors.IMAGE_DIM
     keypoint_dim: int = 128  # local descriptor size (RootSIFT)
