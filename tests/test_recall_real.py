@@ -147,7 +147,7 @@ def test_chance_test_is_jittable_and_ignores_padding():
 
 
 def test_with_capacities_changes_only_capacities():
-    cfg = memory.with_capacities(max_maps=200, max_keypoints=1024)
+    cfg = memory.with_capacities(max_maps=200, max_keypoints=2048)
     base = memory.MemoryConfig()
     diff = {f.name for f in dataclasses.fields(base) if getattr(cfg, f.name) != getattr(base, f.name)}
     assert diff == {"max_maps", "max_keypoints"}
