@@ -501,6 +501,10 @@ def test_acceptance_model_in_identify_equals_sklearn_on_its_features(visits):
     assert list(np.asarray(out.map_id) >= 0) == list(np.asarray(out.acceptance) >= 0)
     with pytest.raises(ValueError, match="accept_weights"):
         memory.MemoryConfig(accept_weights=(1.0, 2.0))
+    with pytest.raises(ValueError, match="min_overlap"):
+        memory.MemoryConfig(min_overlap=1.5)
+    with pytest.raises(ValueError, match="accept_log_nfa"):
+        memory.MemoryConfig(accept_log_nfa=0.5)
 
 
 def _floor_keypoints(rng, n, dim=128):

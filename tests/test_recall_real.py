@@ -95,6 +95,29 @@ def test_real_pair_that_shares_nothing_is_not_recalled(kitchen_visits):
     assert not bool(out.verification.accepted)
 
 
+def test_chance_test_far_beyond_chance_accepts_alone(kitchen_visits):
+    """The acceptance model is a fit to one synthetic generator; a pose far beyond chance (log10 NFA
+    below ``accept_log_nfa``) is accepted even when the model says no, a pair that shares nothing is
+    not, and neither is a window whose overlap with the map (ICP fitness) is under ``min_overlap``."""
+    seqs, entries = kitchen_visits
+    model_says_no = dataclasses.replace(CFG, accept_bias=-100.0)
+    ident = jax.jit(lambda bank, e, k: memory.identify(bank, e, model_says_no, k))
+    for (a, b), right in ((REVISIT, True), (DISTINCT, False)):
+        out = ident(_bank(entries[a]), entries[b], jax.random.PRNGKey(0))
+        assert float(out.acceptance) < 0
+        assert int(out.map_id) == (0 if right else -1), (a, b, float(out.log_nfa))
+        assert bool(out.verification.accepted) == (float(out.log_nfa) < CFG.accept_log_nfa)
+    # ... but only a window that shares its surface with the map: the same revisit, asked for an overlap
+    # (ICP fitness) above its own, is a new place
+    a, b = REVISIT
+    fitness = float(_identify(_bank(entries[a]), entries[b], jax.random.PRNGKey(0)).verification.fitness)
+    assert CFG.min_overlap <= fitness < 1.0
+    no_overlap = dataclasses.replace(model_says_no, min_overlap=min(1.0, fitness + 0.01))
+    out = jax.jit(lambda bank, e, k: memory.identify(bank, e, no_overlap, k))(_bank(entries[a]), entries[b],
+                                                                              jax.random.PRNGKey(0))
+    assert int(out.map_id) == -1 and float(out.log_nfa) < CFG.accept_log_nfa
+
+
 def test_chance_test_rejects_ransac_on_shuffled_matches():
     """RANSAC always finds a pose; on matches whose map ends are shuffled its inliers are what chance
     gives, and the chance test says so (log10 NFA >= 0), while the same matches unshuffled pass. The

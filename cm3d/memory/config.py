@@ -117,6 +117,16 @@ class MemoryConfig:
     # reported (recall.json), not a gate: at 0 it rejected right revisits with few keypoints (benchmark
     # 98 -> 95 % at 200 maps; the demo's visit 1 window 0: 8 inliers vs 1.31 by chance, log10 NFA +0.9)
     max_log_nfa: float = float("inf")
+    # ... and it accepts on its own (with the hard checks: a stored map, a finite transform, a plausible
+    # scale), whatever the acceptance model says, below 10 ** accept_log_nfa false alarms: -2 expects a
+    # pose this good by chance in at most 1 % of queries (issue 22's false-accept bar). The model is a fit
+    # to one synthetic generator; this test means the same on any data (-inf: the model alone decides)
+    accept_log_nfa: float = -2.0
+    # a recall is a place the window shares with the map: with "full" verification, at least this share of
+    # its ICP points has a map point within icp_distance under the final pose (ICP fitness), whatever the
+    # other tests say. Below it the window is a new place that touches a stored one (issue 22: pairs
+    # under 10 % true overlap are not revisits, pairs over 30 % are; 0.2 lies between them)
+    min_overlap: float = 0.2
     # acceptance model
     accept_weights: tuple[float, ...] = (0.30509, 0, 0, 0.53475, 0.63843, 0.52652, 0.57809, 0.37127, 0.30781, 0,
                                          -0.23286, -0.19504, 0.62967, 0, 0)
@@ -150,6 +160,11 @@ class MemoryConfig:
             raise ValueError(f"MemoryConfig.up_max_angle: need 0 < degrees < 90, got {self.up_max_angle}")
         if not 0 < self.scale_range[0] < self.scale_range[1]:
             raise ValueError(f"MemoryConfig.scale_range: need 0 < lo < hi, got {self.scale_range}")
+        if not 0 <= self.min_overlap <= 1:
+            raise ValueError(f"MemoryConfig.min_overlap: need a share in [0, 1], got {self.min_overlap}")
+        if np.isnan(self.accept_log_nfa) or self.accept_log_nfa > 0:
+            raise ValueError(f"MemoryConfig.accept_log_nfa: need log10 NFA <= 0 (fewer than one false alarm) or "
+                             f"-inf (off), got {self.accept_log_nfa}")
         if self.accept_weights or self.accept_mean or self.accept_scale:
             n = len(ACCEPTANCE_FEATURES)
             for name in ("accept_weights", "accept_mean", "accept_scale"):

@@ -7,7 +7,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from cm3d.memory.acceptance import acceptance_features, acceptance_score, chance_test, chance_tests, model_accepts
+from cm3d.memory.acceptance import (acceptance_features, acceptance_score, chance_test, chance_tests, hard_checks,
+                                    model_accepts)
 from cm3d.memory.bank import MemoryBank
 from cm3d.memory.config import MemoryConfig
 from cm3d.memory.entry import MapEntry
@@ -44,7 +45,10 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
     :func:`acceptance_score` of :func:`acceptance_features` >= 0, plus the hard checks (a stored map, a
     finite transform, a scale in ``cfg.scale_range``). Every accepted candidate also passes the
     **chance test** (:func:`chance_test`: the final pose's keypoint inliers against the count its
-    shuffled matches give, log10 NFA below ``cfg.max_log_nfa``), with keypoint verification or more.
+    shuffled matches give, log10 NFA below ``cfg.max_log_nfa``), with keypoint verification or more;
+    a candidate far beyond chance (log10 NFA below ``cfg.accept_log_nfa``) that passes the hard checks
+    is accepted whatever the model or the thresholds say. With ``"full"`` verification an accepted
+    candidate also overlaps the map: ICP fitness at least ``cfg.min_overlap``.
     """
     r = recall(bank, entry.kf_desc, entry.kf_valid, entry.cloud_desc, cfg)
     cand = r.candidates
@@ -68,7 +72,11 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
     # the chance test (3D feature stage, under the final pose): an a-contrario bound on the keypoint inliers
     thr = cfg.ransac_distance * jnp.maximum(bank.voxel_size[jnp.maximum(m, 0)], 1e-12)
     k, lam, log_nfa = chance_test(scored[0][b], scored[1][b], scored[2][b], v.transform, thr, chance_tests(cfg))
-    v = v.replace(accepted=v.accepted & (log_nfa < cfg.max_log_nfa))
+    alone = hard_checks(bank, m, v, cfg) & (log_nfa < cfg.accept_log_nfa)  # far beyond chance: accepted alone
+    accepted = (v.accepted & (log_nfa < cfg.max_log_nfa)) | alone
+    if cfg.verification == "full":  # the window must share a part of its surface with the map, not touch it
+        accepted = accepted & (v.fitness >= cfg.min_overlap)
+    v = v.replace(accepted=accepted)
     return Identification(recall=r, candidate_inliers=best, verification=v, map_id=jnp.where(v.accepted, m, -1),
                           candidate=m, features=feats, acceptance=score, pose_inliers=k, chance_inliers=lam,
                           log_nfa=log_nfa)

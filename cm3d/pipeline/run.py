@@ -112,7 +112,7 @@ class WindowRecord:
 
 def memory_decision(r, memory_on: bool) -> str:
     """Which acceptance test of a window's verified candidate accepted or rejected it, and by how much:
-    the chance test (log10 NFA against 0) and the acceptance model (score against 0)."""
+    the chance test (log10 NFA against MemoryConfig.accept_log_nfa) and the acceptance model (score against 0)."""
     cand = [int(c) for c in np.asarray(r.candidates) if c >= 0]
     if not memory_on:
         return "memory off"
@@ -122,10 +122,13 @@ def memory_decision(r, memory_on: bool) -> str:
     tests = []
     if np.isfinite(score):
         tests.append(f"model {'pass' if score >= 0 else 'FAIL'}: score {score:+.2f} (accept >= 0)")
-    tests.append(f"chance test: {int(r.pose_inliers)} keypoint inliers vs {float(r.chance_inliers):.2f} by "
-                 f"chance, log10 NFA {nfa:+.1f} (gates below MemoryConfig.max_log_nfa)")
+    alone = bool(r.accepted) and np.isfinite(score) and score < 0
+    tests.append(f"chance test{' PASS alone' if alone else ''}: {int(r.pose_inliers)} keypoint inliers vs "
+                 f"{float(r.chance_inliers):.2f} by chance, log10 NFA {nfa:+.1f} (accepts alone below "
+                 f"MemoryConfig.accept_log_nfa, gates below max_log_nfa)")
     if not bool(r.accepted) and not (np.isfinite(score) and score < 0):
-        tests.append(f"another check FAIL (chance test, scale or transform): scale {float(r.scale):.3f}")
+        tests.append(f"another check FAIL (chance test, overlap, scale or transform): overlap {float(r.fitness):.2f} "
+                     f"(MemoryConfig.min_overlap), scale {float(r.scale):.3f}")
     return ("accepted" if bool(r.accepted) else "rejected") + " (" + "; ".join(tests) + ")"
 
 
