@@ -49,7 +49,10 @@ reloc_trans_m_median, reloc_scale_err_pct_median (null when nothing was recalled
 seconds_per_segment; one ``overlap_A_B`` per pair; with ``--all-pairs``: window_recall_frac_overlap30,
 windows_overlap30, pairs_overlap30, pairs_overlap30_recalled, false_recalls_overlap10, pairs_overlap10,
 window_reloc_rot_deg_median, window_reloc_trans_m_median, window_reloc_scale_err_pct_median,
-window_reloc_abs_scale_err_pct_median.
+window_reloc_abs_scale_err_pct_median, merge_acc_ratio_median, merge_comp_ratio_median, merge_acc_worse10_pairs,
+merge_comp_improved_pairs, merge_pairs. Map update (the revisit pairs B recalled): merge_acc_before, merge_acc_after,
+merge_comp_before, merge_comp_after (means; A's stored map before / after B's windows merged into it, in the world
+by A's own alignment, against the ground truth of both visits).
 """
 
 from __future__ import annotations
@@ -64,7 +67,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from cm3d import baselines, outputs, pipeline  # noqa: E402
+from cm3d import baselines, memory, outputs, pipeline  # noqa: E402
 from cm3d.data import priors, sevenscenes  # noqa: E402
 from cm3d.eval import metrics  # noqa: E402
 from cm3d.outputs import write_json  # noqa: E402
@@ -164,6 +167,26 @@ def reloc_error(est: np.ndarray, true: np.ndarray, scale_a: float) -> dict:
     rot = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
     return {"rot_deg": rot, "trans_m": float(np.linalg.norm(est[:3, 3] - true[:3, 3]) / scale_a),
             "scale_err_pct": float(100 * (se / st - 1))}
+
+
+def map_points(bank, map_ids) -> np.ndarray:
+    """The stored points (N, 3) of the maps ``map_ids`` of ``bank`` (their frame: the sequence that created them)."""
+    clouds = [memory.map_cloud(bank, m) for m in sorted(map_ids)]
+    pts = [np.asarray(c.points, np.float64)[np.asarray(c.valid)] for c in clouds]
+    return np.concatenate(pts) if pts else np.zeros((0, 3))
+
+
+def merge_quality(seq_a, res_a, before: np.ndarray, after: np.ndarray, cloud: np.ndarray) -> dict:
+    """A's stored map before and after a revisit merged into it (points in A's prior frame), in the world
+    by A's own alignment (:func:`map_to_world` with A's refined poses), against the ground-truth ``cloud``
+    of both visits: accuracy / completion medians (m) and the point counts."""
+    out = {}
+    for name, pts in (("before", before), ("after", after)):
+        world = map_to_world(pts, res_a.poses, seq_a.gt.cam_to_world, seq_a.meta["prior_scale"])
+        m = metrics.reconstruction_metrics(world, cloud)
+        out |= {f"acc_{name}": m["accuracy_median"], f"comp_{name}": m["completion_median"],
+                f"points_{name}": len(pts)}
+    return out
 
 
 def run_segment(seq, cfg, bank=None, baseline: bool = False):
@@ -284,11 +307,15 @@ def main() -> None:
         """B's windows with the bank A's run left: (overlap, [(window, accepted with A's map)], best window)."""
         if (a, b) not in memo:
             maps_a = {w.map_id for w in results[a].windows if w.created_map}
-            _, res_b, *_ = run_segment(seqs[b], cfg, banks[a])
+            bank_b, res_b, *_ = run_segment(seqs[b], cfg, banks[a])
             wins = [(w, bool(w.accepted and w.recalled_map in maps_a)) for w in res_b.windows]
             best = max(res_b.windows, key=lambda w: max(w.keypoint_inliers or [0]))
             top = "A" if best.candidates and best.candidates[0] in maps_a else "-"
-            memo[(a, b)] = (overlap(clouds[a], clouds[b]), wins, best, top)
+            merged = None
+            if any(ok for _, ok in wins):  # A's map before and after B's recalled windows merged into it
+                merged = merge_quality(seqs[a], results[a], map_points(banks[a], maps_a), map_points(bank_b, maps_a),
+                                       np.concatenate([clouds[a], clouds[b]]))
+            memo[(a, b)] = (overlap(clouds[a], clouds[b]), wins, best, top, merged)
         return memo[(a, b)]
 
     def window_errors(a, b, wins):
@@ -296,7 +323,7 @@ def main() -> None:
                 for w, ok in wins if ok]
 
     def show(a, b, kind):
-        ov, wins, best, top = pair_run(a, b)
+        ov, wins, best, top, _ = pair_run(a, b)
         errs = window_errors(a, b, wins)
         e = errs[0] if errs else {"rot_deg": float("nan"), "trans_m": float("nan"), "scale_err_pct": float("nan")}
         n_ok = sum(ok for _, ok in wins)
@@ -320,6 +347,17 @@ def main() -> None:
                 "distinct_total": len(distinct), "reloc_rot_deg_median": med(reloc, "rot_deg"),
                 "reloc_trans_m_median": med(reloc, "trans_m"), "reloc_scale_err_pct_median": med(reloc, "scale_err_pct")}
     print(f"\nrevisits recalled {recalled}/{len(revisits)}, false recalls {false_recalls}/{len(distinct)}")
+    merges = {(a, b): pair_run(a, b)[4] for a, b in revisits if pair_run(a, b)[4] is not None}
+    if merges:
+        print("\nmap update: A's stored map before / after B's recalled windows merged into it, against the "
+              "ground truth of both visits (medians, m; A's alignment)\n")
+        print(f"{'pair':>11s} {'acc before':>10s} {'acc after':>9s} {'comp before':>11s} {'comp after':>10s} "
+              f"{'points':>13s}")
+        for (a, b), q in merges.items():
+            print(f"{a:4d}/{b:<4d}  {q['acc_before']:10.4f} {q['acc_after']:9.4f} {q['comp_before']:11.4f} "
+                  f"{q['comp_after']:10.4f} {q['points_before']:6d}/{q['points_after']:<6d}")
+        for k in ("acc_before", "acc_after", "comp_before", "comp_after"):
+            figures[f"merge_{k}"] = float(np.mean([q[k] for q in merges.values()]))
 
     if args.all_pairs:
         # every pair (A, B) of the run's segments with B at least one segment after A (not B continuing A's
@@ -332,7 +370,7 @@ def main() -> None:
         print(head)
         print("-" * len(head))
         win_ok = win_n = 0
-        errs_all, false_pairs, low_pairs, high_pairs, high_recalled = [], 0, 0, 0, 0
+        errs_all, false_pairs, low_pairs, high_pairs, high_recalled, merged_all = [], 0, 0, 0, 0, []
         for a, b in pairs:
             ov = overlap(clouds[a], clouds[b])
             kind = "revisit" if ov >= 0.3 else ("distinct" if ov < 0.1 else "partial")
@@ -343,6 +381,8 @@ def main() -> None:
                 win_ok += sum(ok for _, ok in wins)
                 win_n += len(wins)
                 errs_all += errs
+                if pair_run(a, b)[4] is not None:
+                    merged_all.append(pair_run(a, b)[4])
             elif kind == "distinct":
                 low_pairs += 1
                 false_pairs += any(ok for _, ok in wins)
@@ -362,6 +402,16 @@ def main() -> None:
                   f"(|scale| {float(np.median([abs(r['scale_err_pct']) for r in errs_all])):.2f} %)")
             figures["window_reloc_abs_scale_err_pct_median"] = float(np.median([abs(r["scale_err_pct"])
                                                                                for r in errs_all]))
+        if merged_all:
+            ratio = lambda k: np.array([q[f"{k}_after"] / q[f"{k}_before"] for q in merged_all])  # noqa: E731
+            acc, comp = ratio("acc"), ratio("comp")
+            print(f"map update of the {len(merged_all)} recalled pairs with >= 30 % overlap (after / before): accuracy "
+                  f"median x{np.median(acc):.3f} (worse by > 10 % in {int(np.sum(acc > 1.1))}), completion median "
+                  f"x{np.median(comp):.3f} (improved in {int(np.sum(comp < 1))})")
+            figures |= {"merge_acc_ratio_median": float(np.median(acc)),
+                        "merge_comp_ratio_median": float(np.median(comp)),
+                        "merge_acc_worse10_pairs": int(np.sum(acc > 1.1)),
+                        "merge_comp_improved_pairs": int(np.sum(comp < 1)), "merge_pairs": len(merged_all)}
     print(f"wall {time.perf_counter() - t_start:.0f} s")
     if args.json:
         write_json(args.json, figures)
