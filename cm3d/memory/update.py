@@ -13,8 +13,9 @@ from cm3d.memory.entry import (Keypoints, MapEntry, cloud_descriptor, downsample
                               fit_keypoints)
 from cm3d.memory.identify import Identification, identify
 from cm3d.ops import descriptors, sim3
-from cm3d.ops.grid import sort_by_cell
+from cm3d.ops.grid import grid_nearest, sort_by_cell
 from cm3d.ops.neighbors import estimate_normals
+from cm3d.ops.voxel import voxel_downsample
 
 
 def relocalize(transform, cam_to_world):
@@ -37,7 +38,10 @@ def update_map(bank: MemoryBank, map_id, entry: MapEntry, transform, cfg: Memory
     """Merge a verified query into map ``map_id``: its voxels moved by ``transform`` (query ->
     map), pooled with the map's (weighted by confidence), downsampled again at the map's voxel
     size (grown if over capacity); keyframes and keypoints merged; 3D descriptor and normals
-    recomputed."""
+    recomputed. With ``cfg.merge_new_surface_only`` (off by default) the stored points stay as they are and
+    only the query's voxels farther than one grid cell (the verifying ICP's inlier distance) from every
+    stored point are added, downsampled at the map's voxel: the revisit adds what it newly saw (when that
+    does not fit the capacity, all are pooled and the voxel grows, as without the option)."""
     m = map_id
     A, t = transform[:3, :3], transform[:3, 3]
     q = entry.points @ A.T + t
@@ -47,6 +51,18 @@ def update_map(bank: MemoryBank, map_id, entry: MapEntry, transform, cfg: Memory
                              jnp.concatenate([bank.conf[m], entry.conf])[:, None]], axis=1)
     P = bank.points.shape[1]
     vox, vs = downsample_to_capacity(pts, valid, feats, bank.voxel_size[m], P)
+    if cfg.merge_new_surface_only:  # the stored points as they are + the new surface at the map's voxel, when it fits
+        cell = GRID_CELL * jnp.maximum(bank.voxel_size[m], 1e-12)  # what the map holds: within an ICP inlier's distance
+        _, d2 = grid_nearest(q, bank.points[m], bank.point_valid[m], cell, per_cell=cfg.grid_per_cell)
+        add = voxel_downsample(q, bank.voxel_size[m], entry.point_valid & ~(d2 < cell**2), feats[P:], capacity=P)
+        both = jnp.concatenate([bank.point_valid[m], add.valid])
+        keep = jnp.argsort(~both, stable=True)[:P]
+        fits = jnp.sum(bank.point_valid[m]) + add.count <= P
+        pick = lambda kept, pooled: jnp.where(fits, kept, pooled)  # noqa: E731
+        vox = vox.replace(points=pick(jnp.concatenate([bank.points[m], add.points])[keep], vox.points),
+                          valid=pick(both[keep], vox.valid),
+                          features=pick(jnp.concatenate([feats[:P], add.features])[keep], vox.features))
+        vs = jnp.where(fits, bank.voxel_size[m], vs)
     normals = estimate_normals(vox.points, vox.valid, k=16, radius=cfg.normal_radius)
     normals = jnp.where(vox.valid[:, None], normals, 0.0)
     vpts, vvalid, normals, vfeat = sort_by_cell(vox.points, vox.valid, jnp.maximum(vs, 1e-12) * GRID_CELL, normals,
