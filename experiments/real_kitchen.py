@@ -323,23 +323,25 @@ def main() -> None:
                 for w, ok in wins if ok]
 
     def show(a, b, kind):
-        ov, wins, best, top, _ = pair_run(a, b)
+        ov, wins, best, top, merged = pair_run(a, b)
         errs = window_errors(a, b, wins)
         e = errs[0] if errs else {"rot_deg": float("nan"), "trans_m": float("nan"), "scale_err_pct": float("nan")}
         n_ok = sum(ok for _, ok in wins)
         print(f"{a:4d}/{b:<4d}  {kind:>8s} {100 * ov:6.1f}% {('yes' if n_ok else 'no'):>8s} {n_ok:3d}/{len(wins):<3d} "
               f"{top:>9s} {max(best.keypoint_inliers or [0]):7d} {e['rot_deg']:6.2f} {e['trans_m']:7.3f} "
               f"{e['scale_err_pct']:7.2f}")
-        return ov, wins, errs
+        return ov, wins, errs, merged
 
-    recalled, false_recalls, reloc = 0, 0, []
+    recalled, false_recalls, reloc, merges = 0, 0, [], {}
     for kind, pairs in (("revisit", revisits), ("distinct", distinct)):
         for a, b in pairs:
-            ov, wins, errs = show(a, b, kind)
+            ov, wins, errs, merged = show(a, b, kind)
             figures[f"overlap_{a}_{b}"] = ov
             if kind == "revisit":
                 recalled += any(ok for _, ok in wins)
                 reloc += errs[:1]
+                if merged is not None:
+                    merges[(a, b)] = merged
             else:
                 false_recalls += any(ok for _, ok in wins)
     med = lambda rows, k: float(np.median([r[k] for r in rows])) if rows else None  # noqa: E731
@@ -347,7 +349,6 @@ def main() -> None:
                 "distinct_total": len(distinct), "reloc_rot_deg_median": med(reloc, "rot_deg"),
                 "reloc_trans_m_median": med(reloc, "trans_m"), "reloc_scale_err_pct_median": med(reloc, "scale_err_pct")}
     print(f"\nrevisits recalled {recalled}/{len(revisits)}, false recalls {false_recalls}/{len(distinct)}")
-    merges = {(a, b): pair_run(a, b)[4] for a, b in revisits if pair_run(a, b)[4] is not None}
     if merges:
         print("\nmap update: A's stored map before / after B's recalled windows merged into it, against the "
               "ground truth of both visits (medians, m; A's alignment)\n")
@@ -374,15 +375,15 @@ def main() -> None:
         for a, b in pairs:
             ov = overlap(clouds[a], clouds[b])
             kind = "revisit" if ov >= 0.3 else ("distinct" if ov < 0.1 else "partial")
-            ov, wins, errs = show(a, b, kind)
+            ov, wins, errs, merged = show(a, b, kind)
             if kind == "revisit":
                 high_pairs += 1
                 high_recalled += any(ok for _, ok in wins)
                 win_ok += sum(ok for _, ok in wins)
                 win_n += len(wins)
                 errs_all += errs
-                if pair_run(a, b)[4] is not None:
-                    merged_all.append(pair_run(a, b)[4])
+                if merged is not None:
+                    merged_all.append(merged)
             elif kind == "distinct":
                 low_pairs += 1
                 false_pairs += any(ok for _, ok in wins)

@@ -295,8 +295,8 @@ def test_update_map_adds_only_new_surface_unless_told_to_pool():
     before = np.asarray(bank.points[m])[ok]
     eye = jnp.eye(4, dtype=jnp.float32)
     new_cfg = dataclasses.replace(SEQ_CFG, merge_new_surface_only=True)
+    update = jax.jit(memory.update_map, static_argnums=4)
     for cfg in (new_cfg, SEQ_CFG):
-        update = jax.jit(memory.update_map, static_argnums=4)
         off = update(bank, m, entry.replace(points=entry.points + jnp.float32(0.4 * vs)), eye, cfg)
         after = np.asarray(off.points[m])[np.asarray(off.point_valid[m])]
         moved = np.median(cKDTree(after).query(before)[0]) / vs  # how far the stored surface's points went
