@@ -283,35 +283,37 @@ def test_update_map_merges_into_the_map_frame():
 
 
 def test_update_map_adds_only_new_surface_unless_told_to_pool():
-    """A revisit placed a little off (0.4 voxel) leaves the stored surface as it was (new-surface merge),
-    where pooling every voxel (the default) pulls the stored points towards it; surface the map does not
-    hold (the same cloud 100 voxels away) is added either way."""
+    """A revisit placed a little off (0.4 voxel) leaves the stored surface as it was (the default new-surface
+    merge of a recall), where pooling every voxel (``merge_new_surface_only=False``, or a query in the map's
+    own frame: ``same_frame``) pulls the stored points towards it; surface the map does not hold (the same
+    cloud 100 voxels away) is added either way."""
     from scipy.spatial import cKDTree
 
     _, entry = _entry_of()
+    assert SEQ_CFG.merge_new_surface_only
     bank, m = _insert(memory.empty(SEQ_CFG), entry)
     vs = float(bank.voxel_size[m])
     ok = np.asarray(bank.point_valid[m])
     before = np.asarray(bank.points[m])[ok]
     eye = jnp.eye(4, dtype=jnp.float32)
-    new_cfg = dataclasses.replace(SEQ_CFG, merge_new_surface_only=True)
+    pool_cfg = dataclasses.replace(SEQ_CFG, merge_new_surface_only=False)
     update = jax.jit(memory.update_map, static_argnums=4)
-    for cfg in (new_cfg, SEQ_CFG):
-        off = update(bank, m, entry.replace(points=entry.points + jnp.float32(0.4 * vs)), eye, cfg)
+    for cfg, same_frame, new_only in ((SEQ_CFG, False, True), (pool_cfg, False, False), (SEQ_CFG, True, False)):
+        off = update(bank, m, entry.replace(points=entry.points + jnp.float32(0.4 * vs)), eye, cfg, same_frame)
         after = np.asarray(off.points[m])[np.asarray(off.point_valid[m])]
         moved = np.median(cKDTree(after).query(before)[0]) / vs  # how far the stored surface's points went
-        if cfg.merge_new_surface_only:
+        if new_only:
             assert len(after) == len(before) and moved < 1e-3
         else:
             assert moved > 0.1
-        far = update(bank, m, entry.replace(points=entry.points + jnp.float32(100 * vs)), eye, cfg)
+        far = update(bank, m, entry.replace(points=entry.points + jnp.float32(100 * vs)), eye, cfg, same_frame)
         got = np.asarray(far.points[m])[np.asarray(far.point_valid[m])]
         nearer_far = cKDTree(before + 100 * vs).query(got)[0] < cKDTree(before).query(got)[0]
         assert 0.25 < np.mean(nearer_far) < 0.75  # both copies held (over capacity: pooled, the voxel grown)
     # new surface that fits the capacity: added beside the stored points, which stay exactly as they were
     few = entry.replace(points=entry.points + jnp.float32(100 * vs),
                         point_valid=entry.point_valid & (jnp.arange(entry.points.shape[0]) < 12))
-    out = update(bank, m, few, eye, new_cfg)
+    out = update(bank, m, few, eye, SEQ_CFG, False)
     got = np.asarray(out.points[m])[np.asarray(out.point_valid[m])]
     assert len(before) < len(got) <= len(before) + 12 and float(out.voxel_size[m]) == vs
     assert np.max(cKDTree(got).query(before)[0]) < 1e-6

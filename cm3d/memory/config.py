@@ -105,10 +105,11 @@ class MemoryConfig:
     icp_iterations: int = 5
     grid_per_cell: int = 3  # ICP neighbour search: points looked at per grid cell (see GRID_CELL)
     max_colour_difference: float = 40.0  # RGB (0-255) distance for a colour-consistent ICP inlier
-    # map update: True keeps the stored points and adds only the revisit's voxels off the stored surface
-    # (farther than the ICP's inlier distance); False (default) pools every voxel. True measured better maps
-    # (docs/memory.md, stop 42) but made tests/test_pipeline.py's seeded revisit 3 % worse with memory
-    merge_new_surface_only: bool = False
+    # map update of a recalled map: True (default) keeps the stored points and adds only the revisit's voxels
+    # off the stored surface (farther than the ICP's inlier distance), since the revisit is placed by an
+    # estimated Sim(3) and pooling would blur the map with its error; False pools every voxel. A sequence's
+    # windows merged into its own map (same frame, no estimate) are always pooled (docs/memory.md, stop 43)
+    merge_new_surface_only: bool = True
     # verification thresholds (tuned on the tuning split of experiments/memory_recall.py, never its test split)
     verification: str = "full"  # "none" (2D recall only), "keypoints" (+ 3D RANSAC), "full" (+ ICP)
     min_keypoint_inliers: int = 6  # verification: RANSAC inliers, distinct 3D points (keypoint_clusters)

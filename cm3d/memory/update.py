@@ -34,14 +34,17 @@ def merge_evenly(old_valid, new_valid):
     return evenly_spread(jnp.concatenate([old_valid, new_valid]), old_valid.shape[0])
 
 
-def update_map(bank: MemoryBank, map_id, entry: MapEntry, transform, cfg: MemoryConfig) -> MemoryBank:
+def update_map(bank: MemoryBank, map_id, entry: MapEntry, transform, cfg: MemoryConfig,
+               same_frame=False) -> MemoryBank:
     """Merge a verified query into map ``map_id``: its voxels moved by ``transform`` (query ->
     map), pooled with the map's (weighted by confidence), downsampled again at the map's voxel
     size (grown if over capacity); keyframes and keypoints merged; 3D descriptor and normals
-    recomputed. With ``cfg.merge_new_surface_only`` (off by default) the stored points stay as they are and
-    only the query's voxels farther than one grid cell (the verifying ICP's inlier distance) from every
-    stored point are added, downsampled at the map's voxel: the revisit adds what it newly saw (when that
-    does not fit the capacity, all are pooled and the voxel grows, as without the option)."""
+    recomputed. With ``cfg.merge_new_surface_only`` a query placed by an estimated ``transform`` (a recall)
+    leaves the stored points as they are and adds only its voxels farther than one grid cell (the verifying
+    ICP's inlier distance) from every stored point, downsampled at the map's voxel: the revisit adds what it
+    newly saw (when that does not fit the capacity, all are pooled and the voxel grows, as without the
+    option). ``same_frame`` (bool, may be traced): the query is already in the map's frame (a sequence's
+    window into its own map, ``transform`` the identity), so its voxels are pooled whatever the option."""
     m = map_id
     A, t = transform[:3, :3], transform[:3, 3]
     q = entry.points @ A.T + t
@@ -57,7 +60,7 @@ def update_map(bank: MemoryBank, map_id, entry: MapEntry, transform, cfg: Memory
         add = voxel_downsample(q, bank.voxel_size[m], entry.point_valid & ~(d2 < cell**2), feats[P:], capacity=P)
         both = jnp.concatenate([bank.point_valid[m], add.valid])
         keep = jnp.argsort(~both, stable=True)[:P]
-        fits = jnp.sum(bank.point_valid[m]) + add.count <= P
+        fits = (jnp.sum(bank.point_valid[m]) + add.count <= P) & ~jnp.asarray(same_frame, bool)
         pick = lambda kept, pooled: jnp.where(fits, kept, pooled)  # noqa: E731
         vox = vox.replace(points=pick(jnp.concatenate([bank.points[m], add.points])[keep], vox.points),
                           valid=pick(both[keep], vox.valid),

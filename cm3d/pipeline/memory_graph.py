@@ -134,7 +134,7 @@ def sequence_query(bank: memory.MemoryBank, written, entry: memory.MapEntry, mem
     m = jnp.maximum(written, 0)
 
     def merged(entry):
-        b = memory.update_map(bank, m, entry, jnp.eye(4, dtype=jnp.float32), mem_cfg)
+        b = memory.update_map(bank, m, entry, jnp.eye(4, dtype=jnp.float32), mem_cfg, same_frame=True)
         return memory.stored_entry(b, m).replace(floor_keypoints=entry.floor_keypoints)
 
     return jax.lax.cond(written >= 0, merged, lambda e: e, entry)
@@ -205,7 +205,7 @@ def recall_verify_update(bank: memory.MemoryBank, cursor: MemoryCursor, key, win
     known = target >= 0
 
     def merge(b):
-        return memory.update_map(b, jnp.maximum(target, 0), entry, target_T, mem_cfg), target
+        return memory.update_map(b, jnp.maximum(target, 0), entry, target_T, mem_cfg, same_frame=use_map < 0), target
 
     bank, map_id = jax.lax.cond(known, merge, lambda b: memory.insert_map(b, entry), bank)
     created = ~known & (map_id >= 0)
