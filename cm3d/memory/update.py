@@ -54,7 +54,9 @@ def update_map(bank: MemoryBank, map_id, entry: MapEntry, transform, cfg: Memory
                              jnp.concatenate([bank.conf[m], entry.conf])[:, None]], axis=1)
     P = bank.points.shape[1]
     vox, vs = downsample_to_capacity(pts, valid, feats, bank.voxel_size[m], P)
-    if cfg.merge_new_surface_only:  # the stored points as they are + the new surface at the map's voxel, when it fits
+    # the stored points as they are + the new surface at the map's voxel, when it fits (not even traced when the
+    # caller knows the query is in the map's frame)
+    if cfg.merge_new_surface_only and same_frame is not True:
         cell = GRID_CELL * jnp.maximum(bank.voxel_size[m], 1e-12)  # what the map holds: within an ICP inlier's distance
         _, d2 = grid_nearest(q, bank.points[m], bank.point_valid[m], cell, per_cell=cfg.grid_per_cell)
         add = voxel_downsample(q, bank.voxel_size[m], entry.point_valid & ~(d2 < cell**2), feats[P:], capacity=P)
