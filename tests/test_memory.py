@@ -396,6 +396,56 @@ def test_keypoint_clusters_and_distinct_count_match_a_loop():
     assert len(set(cid[valid])) <= 12
 
 
+def test_even_subsample_takes_evenly_spaced_valid_points():
+    rng = np.random.default_rng(2)
+    f = jax.jit(memory.even_subsample, static_argnums=2)
+    for size, n, share in [(8192, 64, 0.5), (8192, 256, 0.01), (300, 256, 0.95), (50, 8, 0.0)]:
+        pts = rng.random((size, 3)).astype(np.float32)
+        valid = rng.random(size) < share
+        kept = np.flatnonzero(valid)
+        want = kept[(np.arange(n) * len(kept)) // n] if len(kept) > n else kept
+        sub, ok, idx = (np.asarray(a) for a in f(pts, valid, n))
+        assert ok.sum() == len(want) and np.array_equal(idx[ok], want) and np.array_equal(sub[ok], pts[want])
+        if len(kept) < size:  # the padding slots hold invalid points
+            assert not np.any(valid[idx[~ok]])
+
+
+def test_match_keypoints_equals_a_brute_force_loop():
+    """Mutual nearest descriptors with the 3D-aware ratio test, against a plain numpy loop: views of one
+    3D point (repeated descriptors nearby in 3D) do not fail the ratio test; invalid keypoints never match."""
+    from cm3d.memory.matching import nearest_descriptors
+
+    rng = np.random.default_rng(5)
+    unit = lambda a: (a / np.linalg.norm(a, axis=-1, keepdims=True)).astype(np.float32)  # noqa: E731
+    m_desc = unit(rng.random((80, 16)))
+    m_pts = rng.uniform(-2, 2, (80, 3)).astype(np.float32)
+    m_desc[40:60] = unit(m_desc[:20] + 0.05 * rng.random((20, 16)))  # a second view of 20 points ...
+    m_pts[40:60] = m_pts[:20] + 0.01  # ... at the same place
+    m_valid = rng.random(80) < 0.9
+    q_desc = unit(m_desc[rng.integers(0, 80, 50)] + 0.2 * rng.random((50, 16)))
+    q_valid = rng.random(50) < 0.9
+    q = memory.Keypoints(np.zeros((50, 3), np.float32), q_desc, q_valid)
+    ratio, sep = 0.85, 0.1
+    j, best, mutual, ratio_ok = jax.jit(nearest_descriptors, static_argnums=2)(q, memory.Keypoints(m_pts, m_desc, m_valid),
+                                                                              ratio, sep)
+    d2 = np.where(q_valid[:, None] & m_valid[None], 2 - 2 * q_desc.astype(np.float64) @ m_desc.T, np.inf)
+    ok = 0
+    for i in range(50):
+        if not q_valid[i]:
+            assert best[i] == np.inf and not mutual[i] and not ratio_ok[i]
+            continue
+        ji = int(np.argmin(d2[i]))
+        far = m_valid & (np.linalg.norm(m_pts - m_pts[ji], axis=1) > sep)
+        assert j[i] == ji and np.isclose(best[i], d2[i, ji], atol=1e-5)
+        assert mutual[i] == (np.argmin(d2[:, ji]) == i)
+        assert ratio_ok[i] == (d2[i, ji] <= ratio**2 * np.min(d2[i, far]))
+        ok += bool(mutual[i] & ratio_ok[i])
+    assert ok >= 10  # the test sees matches that pass, and (the noise) ones that do not
+    assert ok < np.sum(q_valid)
+    _, best, mutual, ratio_ok = nearest_descriptors(q, memory.Keypoints(m_pts, m_desc, np.zeros(80, bool)), ratio, sep)
+    assert np.all(np.isinf(best)) and not np.any(mutual) and not np.any(ratio_ok)  # a map without keypoints
+
+
 def test_entry_keypoints_are_padded_and_never_nan():
     cfg = memory.MemoryConfig(max_maps=2, max_points=64, max_keyframes=3, max_keypoints=8, keypoint_dim=4)
     e = _entry(0, cfg)

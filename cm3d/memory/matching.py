@@ -8,27 +8,33 @@ import jax.numpy as jnp
 import numpy as np
 
 from cm3d.memory.entry import Keypoints
-from cm3d.ops.grid import first_argmin
 
 
-def nearest_descriptors(d2, m_points, ratio: float, min_separation):
-    """From squared descriptor distances d2 (Nq, Nm) (inf for invalid pairs): the nearest map keypoint j
-    (Nq,), its distance (Nq,), whether the match is mutual (Nq,) and whether it passes the 3D-aware ratio
-    test (Nq,) (see :func:`match_keypoints`). Squared 3D distances to the best match's point are expanded
-    as |a|^2 + |b|^2 - 2 a.b (one small matrix product instead of an (Nq, Nm, 3) difference)."""
-    j = first_argmin(d2, 1)
-    best = jnp.min(d2, axis=1)
-    pj = m_points[j]
-    sq = jnp.sum(m_points**2, -1)
-    far = sq[None, :] + sq[j][:, None] - 2.0 * (pj @ m_points.T) > min_separation**2
-    second = jnp.min(jnp.where(far, d2, jnp.inf), axis=1)
-    mutual = first_argmin(d2, 0)[j] == jnp.arange(d2.shape[0])
-    return j, best, mutual, jnp.isfinite(best) & (best <= ratio**2 * second)
+def nearest_descriptors(q: Keypoints, m: Keypoints, ratio: float, min_separation):
+    """Each query keypoint's nearest map keypoint in descriptor space (unit descriptors, squared L2):
+    the map index j (Nq,) (the first on ties), its squared distance (Nq,) (inf for an invalid query
+    keypoint or a map without valid ones), whether the match is mutual (the query keypoint is as close to
+    map keypoint j as any other query keypoint is) and whether it passes the 3D-aware ratio test (Nq,)
+    (see :func:`match_keypoints`).
 
-
-def descriptor_d2(q: Keypoints, m: Keypoints):
-    """(Nq, Nm) squared L2 distances of unit descriptors, inf for pairs with an invalid keypoint."""
-    return jnp.where(q.valid[:, None] & m.valid[None, :], 2.0 - 2.0 * (q.desc @ m.desc.T), jnp.inf)
+    Computed on the similarities ``q.desc @ m.desc.T`` (squared distance ``2 - 2 sim``) in four passes
+    over the (Nq, Nm) matrix: the row maximum, its first index, the best map keypoint farther than
+    ``min_separation`` in 3D (squared 3D distances expanded as |a|^2 + |b|^2 - 2 a.b: one small matrix
+    product instead of an (Nq, Nm, 3) difference) and the column maximum for the mutual check (a
+    column maximum, not a column argmin: 1.6x faster at 256 x 1024, the same matches but on exact ties)."""
+    sim = jnp.where(q.valid[:, None] & m.valid[None, :], q.desc @ m.desc.T, -jnp.inf)
+    top = jnp.max(sim, axis=1)
+    iota = jnp.arange(sim.shape[1], dtype=jnp.int32)
+    j = jnp.min(jnp.where(sim == top[:, None], iota[None, :], sim.shape[1] - 1), axis=1)
+    pj = m.points[j]
+    sq = jnp.sum(m.points**2, -1)
+    far = sq[None, :] + sq[j][:, None] - 2.0 * (pj @ m.points.T) > min_separation**2
+    top_far = jnp.max(jnp.where(far, sim, -jnp.inf), axis=1)
+    found = jnp.isfinite(top)
+    best = jnp.where(found, 2.0 - 2.0 * top, jnp.inf)
+    second = jnp.where(jnp.isfinite(top_far), 2.0 - 2.0 * top_far, jnp.inf)
+    mutual = found & (top >= jnp.max(sim, axis=0)[j])
+    return j, best, mutual, found & (best <= ratio**2 * second)
 
 
 def match_keypoints(q: Keypoints, m: Keypoints, ratio: float, min_separation):
@@ -40,7 +46,7 @@ def match_keypoints(q: Keypoints, m: Keypoints, ratio: float, min_separation):
     """
     q = jax.tree.map(jnp.asarray, q)
     m = jax.tree.map(jnp.asarray, m)
-    j, _, mutual, ratio_ok = nearest_descriptors(descriptor_d2(q, m), m.points, ratio, min_separation)
+    j, _, mutual, ratio_ok = nearest_descriptors(q, m, ratio, min_separation)
     return j, q.valid & mutual & ratio_ok
 
 

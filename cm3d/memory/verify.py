@@ -11,7 +11,7 @@ from flax import struct
 from cm3d.memory.bank import GRID_CELL, MemoryBank, map_cloud
 from cm3d.memory.config import MemoryConfig
 from cm3d.memory.entry import Keypoints, MapEntry, fit_keypoints
-from cm3d.memory.matching import descriptor_d2, keypoint_clusters, nearest_descriptors, up_axis
+from cm3d.memory.matching import keypoint_clusters, nearest_descriptors, up_axis
 from cm3d.ops import sim3
 from cm3d.ops.grid import grid_nearest
 from cm3d.solvers.icp import icp_grid
@@ -38,12 +38,17 @@ class Verification:
 
 
 def even_subsample(points, valid, n: int):
-    """``n`` of the valid points, evenly spread over them (the first n when fewer): (n, 3), (n,)."""
-    order = jnp.argsort(~valid, stable=True)
+    """``n`` of the valid points, evenly spread over them (the first n when fewer): points (n, 3), valid
+    (n,) and their indices (n,) (slots past the valid count hold invalid points, masked). The k-th
+    valid point is found by a binary search of the running count, not by sorting the mask (a sort of
+    8192 flags cost as much as the screening it feeds)."""
+    valid = jnp.asarray(valid, bool)
     count = jnp.sum(valid)
     i = jnp.arange(n)
     pos = jnp.where(count > n, (i * count) // n, i)
-    idx = order[jnp.minimum(pos, valid.shape[0] - 1)]
+    first_valid = jnp.searchsorted(jnp.cumsum(valid), pos + 1)  # the first index whose running count is pos + 1
+    first_invalid = jnp.searchsorted(jnp.cumsum(~valid), pos - count + 1)
+    idx = jnp.minimum(jnp.where(pos < count, first_valid, first_invalid), valid.shape[0] - 1)
     return points[idx], i < count, idx
 
 
@@ -85,7 +90,7 @@ def keypoint_poses(bank: MemoryBank, m, query: Keypoints, floor: Keypoints | Non
         kinds.append((floor, Keypoints(bank.floor_kp_points[m], bank.floor_kp_desc[m], bank.floor_kp_valid[m])))
     parts = []
     for q, mk in kinds:  # (match_keypoints per kind)
-        j, best, mutual, ratio_ok = nearest_descriptors(descriptor_d2(q, mk), mk.points, cfg.ratio, thr)
+        j, best, mutual, ratio_ok = nearest_descriptors(q, mk, cfg.ratio, thr)
         parts.append((q.points, mk.points[j], q.valid & mutual & ratio_ok, q.valid & mutual, best))
     src, dst, strict, mutual, best = (jnp.concatenate(x) for x in zip(*parts))
     n = jnp.arange(src.shape[0])
