@@ -102,6 +102,10 @@ def static_map(seq, poses: np.ndarray, masks: np.ndarray, stride: int = 4, voxel
     extent = float(np.max(np.ptp(pts, axis=0))) if len(pts) > 1 else 1.0
     vs = max(extent / voxel_ratio, 1e-9)
     keys = np.floor(pts / vs).astype(np.int64)
+    keys -= keys.min(0)
+    span = keys.max(0) + 1
+    if np.prod(span.astype(np.float64)) < 2.0**62:  # one int64 per voxel in the rows' lexicographic order: a
+        keys = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]  # 1D unique (1.9 -> 0.6 s, 120 frames)
     _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
     inv = inv.reshape(-1)
     mean = lambda x: np.stack([np.bincount(inv, x[:, k]) for k in range(3)], -1) / counts[:, None]  # noqa: E731

@@ -1,5 +1,7 @@
 """Output writers and pictures: readable by Open3D / OpenCV / evo, atomic, clear errors."""
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -84,6 +86,34 @@ def test_static_map_skips_dynamic_pixels_and_lifts_with_poses():
     np.testing.assert_allclose(pts[:, 2], 2.0, atol=1e-5)  # the plane z = 2 in the world
     everything = np.ones_like(res.masks)
     assert len(outputs.static_map(res.sequence, res.poses, everything)[0]) == 0
+    # the voxel means against a dict of voxels, in the rows' lexicographic order (np.unique(axis=0)'s)
+    seq = res.sequence
+    rng = np.random.default_rng(0)
+    depth = np.asarray(seq.depth) * rng.uniform(0.5, 3.0, np.shape(seq.depth))
+    seq = dataclasses.replace(seq, depth=depth)
+    pts, cols = outputs.static_map(seq, res.poses, res.masks, stride=1, voxel_ratio=7.0)
+    d, keep = np.asarray(seq.depth), ~np.asarray(res.masks) & (np.asarray(seq.depth_conf) >= np.quantile(
+        np.asarray(seq.depth_conf)[~np.asarray(res.masks)], 0.3))
+    S, H, W = d.shape
+    v, u = np.mgrid[0:H, 0:W]
+    K = np.asarray(seq.intrinsic, np.float64)
+    K = K if K.ndim == 3 else np.broadcast_to(K, (S, 3, 3))
+    lifted, colours = [], []
+    for s in range(S):
+        ray = np.linalg.solve(K[s], np.stack([u, v, np.ones_like(u)], -1).reshape(-1, 3).T).T
+        cam = ray * d[s].reshape(-1, 1)
+        world = cam @ np.asarray(res.poses[s], np.float64)[:3, :3].T + np.asarray(res.poses[s], np.float64)[:3, 3]
+        lifted.append(world[keep[s].reshape(-1)])
+        colours.append(np.asarray(seq.images[s]).reshape(-1, 3)[keep[s].reshape(-1)])
+    lifted, colours = np.concatenate(lifted), np.concatenate(colours).astype(np.float64)
+    vs = np.max(np.ptp(lifted, axis=0)) / 7.0
+    voxels = {}
+    for p, c, k in zip(lifted, colours, map(tuple, np.floor(lifted / vs).astype(np.int64))):
+        voxels.setdefault(k, []).append((p, c))
+    want = [np.mean([p for p, _ in voxels[k]], 0) for k in sorted(voxels)]
+    np.testing.assert_allclose(pts, np.array(want), atol=1e-5)
+    assert np.array_equal(cols, np.clip(np.round([np.mean([c for _, c in voxels[k]], 0) for k in sorted(voxels)]),
+                                         0, 255).astype(np.uint8))
 
 
 def test_write_results_writes_every_file(tmp_path):
