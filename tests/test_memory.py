@@ -426,8 +426,8 @@ def test_match_keypoints_equals_a_brute_force_loop():
     q_valid = rng.random(50) < 0.9
     q = memory.Keypoints(np.zeros((50, 3), np.float32), q_desc, q_valid)
     ratio, sep = 0.85, 0.1
-    j, best, mutual, ratio_ok = jax.jit(nearest_descriptors, static_argnums=2)(q, memory.Keypoints(m_pts, m_desc, m_valid),
-                                                                              ratio, sep)
+    m = memory.Keypoints(m_pts, m_desc, m_valid)
+    j, best, mutual, ratio_ok = jax.jit(nearest_descriptors, static_argnums=2)(q, m, ratio, sep)
     d2 = np.where(q_valid[:, None] & m_valid[None], 2 - 2 * q_desc.astype(np.float64) @ m_desc.T, np.inf)
     ok = 0
     for i in range(50):

@@ -218,6 +218,22 @@ def test_files_are_written_with_the_umask(tmp_path, empty_bank):
 WORLD = synthetic.WorldConfig(height=48, width=64, supersample=1)
 
 
+def test_input_statistics_equal_their_plain_formulas():
+    from cm3d.data import quality
+
+    rng = np.random.default_rng(4)
+    smooth = np.cumsum(rng.integers(0, 3, (2, 20, 24, 3)), axis=2).clip(0, 255)
+    images = np.concatenate([smooth, rng.integers(0, 256, (1, 20, 24, 3)), np.full((1, 20, 24, 3), 7)]).astype(np.uint8)
+    grey = quality._grey(images)
+    assert np.array_equal(grey, images.astype(np.float64).mean(-1))
+    r = lambda a, b: np.corrcoef(a.ravel(), b.ravel())[0, 1]  # noqa: E731
+    corr = [0.5 * (r(g[:, :-1], g[:, 1:]) + r(g[:-1], g[1:])) for g in grey[:3]]
+    np.testing.assert_allclose(quality.neighbour_correlation(grey), corr + [1.0], atol=1e-12)  # constant frame: 1
+    gx, gy = np.diff(grey, axis=2)[:, :-1], np.diff(grey, axis=1)[:, :, :-1]
+    np.testing.assert_array_equal(quality.textured_share(grey),
+                                  (np.hypot(gx, gy) > quality.TEXTURE_LEVELS).mean((1, 2)))
+
+
 def test_a_noise_sequence_stores_nothing_and_keeps_the_prior(tmp_path, empty_bank, capsys):
     seq = synthetic.generate(0, 0, 8, "moderate", WORLD)
     noise = seq.replace(images=np.random.default_rng(0).integers(0, 256, seq.images.shape, dtype=np.uint8))

@@ -54,27 +54,33 @@ class InputQuality:
 
 
 def _grey(images) -> np.ndarray:
-    return np.asarray(images, np.float64).mean(-1)
+    """(S, H, W) float64 channel means; of uint8 images as their exact integer sum over the channel
+    count (the same values as a float64 mean, without a float64 copy of every channel)."""
+    images = np.asarray(images)
+    if images.dtype == np.uint8:
+        return images.sum(-1, dtype=np.uint32) / images.shape[-1]
+    return images.astype(np.float64).mean(-1)
 
 
 def neighbour_correlation(grey: np.ndarray) -> np.ndarray:
     """Per frame (S,): the correlation of horizontally and of vertically neighbouring grey values,
-    averaged (1 for a constant frame)."""
+    averaged (1 for a constant frame). One frame at a time (its temporaries stay in cache)."""
 
     def corr(a, b):
-        a = a - a.mean((1, 2), keepdims=True)
-        b = b - b.mean((1, 2), keepdims=True)
-        d = np.sqrt((a * a).sum((1, 2)) * (b * b).sum((1, 2)))
-        return np.where(d > 0, (a * b).sum((1, 2)) / np.where(d > 0, d, 1.0), 1.0)
+        a = a - a.mean()
+        b = b - b.mean()
+        d = np.sqrt((a * a).sum() * (b * b).sum())
+        return (a * b).sum() / d if d > 0 else 1.0
 
-    return 0.5 * (corr(grey[:, :, :-1], grey[:, :, 1:]) + corr(grey[:, :-1], grey[:, 1:]))
+    return np.array([0.5 * (corr(g[:, :-1], g[:, 1:]) + corr(g[:-1], g[1:])) for g in grey], np.float64)
 
 
 def textured_share(grey: np.ndarray) -> np.ndarray:
-    """Per frame (S,): share of pixels whose grey gradient (forward differences) exceeds TEXTURE_LEVELS."""
+    """Per frame (S,): share of pixels whose grey gradient (forward differences) exceeds TEXTURE_LEVELS
+    (compared squared: no square root per pixel)."""
     gx = np.diff(grey, axis=2)[:, :-1]
     gy = np.diff(grey, axis=1)[:, :, :-1]
-    return (np.hypot(gx, gy) > TEXTURE_LEVELS).mean((1, 2))
+    return (gx * gx + gy * gy > TEXTURE_LEVELS**2).mean((1, 2))
 
 
 def depth_holes(seq) -> np.ndarray:
