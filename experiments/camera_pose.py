@@ -25,7 +25,10 @@ revisit (visit 2), compared with the ground truth by ATE / RPE trans (m, Sim(3)-
 
 ``recalled`` is the fraction of revisits in which a window recalled (verified) a map stored by
 visit 1. JSON keys (means over scenes): ``ate_<m>``, ``rpe_trans_<m>``, ``rpe_rot_<m>`` for
-``m`` in prior, pnp, no_memory, memory, plus ``recalled``.
+``m`` in prior, pnp, no_memory, memory, plus ``recalled``; ``overlap_<scene>`` (share of the
+revisit's ground-truth static surface within 5 cm of the first visit's), ``revisits_overlap30`` /
+``recalled_overlap30`` (revisits sharing >= 30 % and how many recalled), ``revisits_overlap10`` /
+``false_recalls_overlap10`` (< 10 %: a recall there is a false one, issue 22's reading).
 
 The helpers :func:`revisit_runs` and :func:`world_config` are shared with
 ``experiments/video_depth.py`` and ``experiments/reconstruction.py``.
@@ -170,6 +173,18 @@ def evaluate(seq, poses) -> dict:
     return metrics.evaluate_trajectories(ts, seq.gt.cam_to_world, ts, np.asarray(poses, np.float64))
 
 
+def visit_overlap(seq_a, seq_b, stride: int = 8, radius: float = 0.05) -> float:
+    """Share of visit B's ground-truth static points (every ``stride``-th pixel) within ``radius`` (m) of
+    visit A's: how much of the revisit's surface the first visit saw (``real_kitchen.py``'s measure)."""
+    from scipy.spatial import cKDTree
+
+    a, b = seq_a.gt.static_points(stride), seq_b.gt.static_points(stride)
+    if len(a) == 0 or len(b) == 0:
+        return 0.0
+    d, _ = cKDTree(a).query(b, distance_upper_bound=radius)
+    return float(np.mean(np.isfinite(d)))
+
+
 def scene_row(scene: int, frames: int, wcfg, quick: bool, use_cache: bool = False) -> dict:
     run = revisit_runs(scene, frames, wcfg, use_cache=use_cache, empty_bank_baseline=quick)
     seq = run["seqs"][1]
@@ -177,6 +192,7 @@ def scene_row(scene: int, frames: int, wcfg, quick: bool, use_cache: bool = Fals
     pnp, pnp_ok = pnp_baseline(seq, mem.masks, quick)
     est = {"prior": seq.cam_to_world, "pnp": pnp, "no_memory": nomem.poses, "memory": mem.poses}
     row = {"scene": scene, "recalled": recalled_earlier_map(mem), "pnp_ok": pnp_ok,
+           "overlap": visit_overlap(run["seqs"][0], seq),
            "memory_landmarks": int(sum(w.memory_landmarks for w in mem.windows if w.memory_used)),
            "ate_visit1_prior": evaluate(run["seqs"][0], run["seqs"][0].cam_to_world)["ate"],
            "ate_visit1_cm3d": evaluate(run["seqs"][0], run["res_mem"][0].poses)["ate"]}
@@ -194,7 +210,7 @@ def recalled_cell(value) -> str:
 def format_table(rows) -> str:
     head = (f"{'scene':>5} | {'ATE prior':>9} {'PnP':>8} {'no mem':>8} {'memory':>8} | {'RPEt prior':>10} "
             f"{'PnP':>8} {'no mem':>8} {'memory':>8} | {'RPEr prior':>10} {'PnP':>7} {'no mem':>7} {'memory':>7} | "
-            f"{'recalled':>8} {'mem lm':>6} {'PnP ok':>6}")
+            f"{'recalled':>8} {'overlap':>7} {'mem lm':>6} {'PnP ok':>6}")
     lines = [head, "-" * len(head)]
     for r in rows:
         name = r["scene"] if isinstance(r["scene"], str) else f"{r['scene']:d}"
@@ -203,7 +219,7 @@ def format_table(rows) -> str:
             f"{name:>5} | " + " ".join(f"{r['ate_' + m]:>{9 if m == 'prior' else 8}.5f}" for m in METHODS)
             + " | " + " ".join(f"{r['rpe_trans_' + m]:>{10 if m == 'prior' else 8}.5f}" for m in METHODS)
             + " | " + " ".join(f"{r['rpe_rot_' + m]:>{10 if m == 'prior' else 7}.3f}" for m in METHODS)
-            + f" | {rec:>8} {r['memory_landmarks']:>6.0f} {r['pnp_ok']:>6.2f}")
+            + f" | {rec:>8} {100 * r['overlap']:>6.1f}% {r['memory_landmarks']:>6.0f} {r['pnp_ok']:>6.2f}")
     return "\n".join(lines)
 
 
@@ -246,7 +262,7 @@ def main() -> None:
         print(f"  scene {s} done ({time.perf_counter() - t0:.0f} s)", flush=True)
     figures = mean_figures(rows, [f"{k}_{m}" for m in METHODS for k in ("ate", "rpe_trans", "rpe_rot")]
                            + ["recalled"])
-    mean = {"scene": "mean", **figures, **mean_figures(rows, ["pnp_ok", "memory_landmarks"])}
+    mean = {"scene": "mean", **figures, **mean_figures(rows, ["pnp_ok", "memory_landmarks", "overlap"])}
     print("\nrevisit (visit 2): ATE / RPE trans in metres (Sim3-aligned), RPE rot in degrees; mem lm: memory "
           "landmarks used by the factor graph; PnP ok: share of frames PnP solved (others keep the prior)\n")
     print(format_table(rows + [mean]))
@@ -256,6 +272,17 @@ def main() -> None:
     print("visit 1 (fills the memory), ATE prior -> cm3d: " + ", ".join(
         f"scene {r['scene']} {r['ate_visit1_prior']:.5f} -> {r['ate_visit1_cm3d']:.5f}" for r in rows))
     figures["pnp_ok"] = mean["pnp_ok"]
+    # issue 22's reading of a revisit (as real_kitchen.py): >= 30 % shared surface should be recalled, under
+    # 10 % must not be (a "revisit" that sees none of the first visit's surface is not one)
+    high = [r for r in rows if r["overlap"] >= 0.3]
+    low = [r for r in rows if r["overlap"] < 0.1]
+    figures |= {f"overlap_{r['scene']}": r["overlap"] for r in rows}
+    figures |= {"revisits_overlap30": len(high), "recalled_overlap30": sum(bool(r["recalled"]) for r in high),
+                "revisits_overlap10": len(low), "false_recalls_overlap10": sum(bool(r["recalled"]) for r in low)}
+    print("shared surface (ground truth: revisit points within 5 cm of the first visit's): "
+          + ", ".join(f"scene {r['scene']} {100 * r['overlap']:.1f} %" for r in rows)
+          + f"; recalled {figures['recalled_overlap30']} of the {len(high)} revisits with >= 30 %, "
+          f"{figures['false_recalls_overlap10']} of the {len(low)} with < 10 % (those must not be)")
     write_figures(args, figures, scenes, frames, wcfg)
 
 
