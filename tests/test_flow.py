@@ -86,3 +86,34 @@ def test_empty_keypoint_sets_keep_the_shape():
     assert none.uv0.shape == (0, 16, 2)
     with pytest.raises(ValueError):
         keypoints.KeypointConfig(detector="surf")
+
+
+def test_spread_order_is_a_round_robin_over_grid_cells():
+    rng = np.random.default_rng(6)
+    uv = rng.uniform(0, 100, (300, 2))
+    uv[:150] = rng.uniform(0, 20, (150, 2))  # a strong textured corner holds half the detections
+    order = rng.permutation(300)  # priority (e.g. strongest first)
+    got = keypoints.spread_order(uv[order], 4, order)
+    lo, span = uv.min(0), np.ptp(uv, axis=0)
+    cell = lambda p: tuple(np.minimum(np.floor((p - lo) / span * 4), 3).astype(int))  # noqa: E731
+    seen, rank = {}, {}
+    for i in order:  # reference: each point's rank within its cell, in priority order
+        rank[i] = seen.get(cell(uv[i]), 0)
+        seen[cell(uv[i])] = rank[i] + 1
+    pos = {i: k for k, i in enumerate(order)}
+    assert list(got) == sorted(order, key=lambda i: (rank[i], pos[i]))
+    assert len({cell(uv[i]) for i in got[:16]}) == 16  # the first 16 cover every cell
+    assert len({cell(uv[i]) for i in order[:16]}) < 16  # strongest first would not
+    assert len(keypoints.spread_order(np.zeros((0, 2)), 4)) == 0
+    with pytest.raises(ValueError, match="spread_cells"):
+        keypoints.KeypointConfig(spread_cells=-1)
+    with pytest.raises(ValueError, match="contrast_threshold"):
+        keypoints.KeypointConfig(contrast_threshold=0.0)
+    img = _texture(96, 128, seed=3)
+    det = keypoints.detect(img, keypoints.KeypointConfig(contrast_threshold=0.01))
+    plain = keypoints.features_from(det, 4000, keypoints.KeypointConfig())
+    spread = keypoints.features_from(det, 4000, keypoints.KeypointConfig(spread_cells=8))
+    n = int(plain.valid.sum())
+    assert n == int(spread.valid.sum()) and n > 50  # the same detections, another order
+    assert sorted(map(tuple, plain.uv[:n])) == sorted(map(tuple, spread.uv[:n]))
+    assert len(keypoints.detect(img)[0]) < n  # the lower contrast threshold finds more

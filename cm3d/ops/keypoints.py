@@ -20,12 +20,22 @@ class KeypointConfig:
     max_matches: int = 512
     ratio: float = 0.8
     max_features: int = 2000
+    # SIFT's contrast threshold (None: OpenCV's 0.04, which finds almost nothing on weakly textured walls)
+    contrast_threshold: float | None = None
+    # features_from's order: 0 strongest first; n > 0 round robin over an n x n grid of the detections'
+    # bounding box (every cell's strongest, then every cell's second, ...), so that a frame's memory
+    # features cover its weakly textured surfaces too, not only its few strongest corners
+    spread_cells: int = 0
 
     def __post_init__(self):
         if self.detector not in ("sift", "orb"):
             raise ValueError(f"KeypointConfig.detector: unknown {self.detector!r} (sift, orb)")
         if self.max_matches < 1:
             raise ValueError("KeypointConfig.max_matches: must be >= 1")
+        if self.contrast_threshold is not None and not self.contrast_threshold > 0:
+            raise ValueError(f"KeypointConfig.contrast_threshold: must be > 0 or None, got {self.contrast_threshold}")
+        if self.spread_cells < 0:
+            raise ValueError(f"KeypointConfig.spread_cells: must be >= 0, got {self.spread_cells}")
 
 
 @struct.dataclass
@@ -47,8 +57,10 @@ def _norm(cfg: KeypointConfig):
 def _detector(cfg: KeypointConfig):
     import cv2
 
-    create = cv2.SIFT_create if cfg.detector == "sift" else cv2.ORB_create
-    return create(nfeatures=cfg.max_features), _norm(cfg)
+    if cfg.detector == "sift":
+        extra = {} if cfg.contrast_threshold is None else {"contrastThreshold": cfg.contrast_threshold}
+        return cv2.SIFT_create(nfeatures=cfg.max_features, **extra), _norm(cfg)
+    return cv2.ORB_create(nfeatures=cfg.max_features), _norm(cfg)
 
 
 def _gray(img):
@@ -140,6 +152,25 @@ def detect_features(image: np.ndarray, mask: np.ndarray | None = None, capacity:
     return features_from(det.detectAndCompute(img, m8), capacity, cfg)
 
 
+def spread_order(uv: np.ndarray, cells: int, order: np.ndarray | None = None) -> np.ndarray:
+    """A round robin over a ``cells`` x ``cells`` grid of the bounding box of ``uv`` (N, 2), listed in
+    priority order (``order``: their indices, default ``arange(N)``): every cell's first entry, then every
+    cell's second, ... (within a round, priority order). Returns the reordered ``order``."""
+    uv = np.asarray(uv, np.float64)
+    order = np.arange(len(uv)) if order is None else np.asarray(order)
+    if len(uv) == 0:
+        return order
+    lo, span = uv.min(0), np.maximum(np.ptp(uv, axis=0), 1e-9)
+    ij = np.minimum(np.floor((uv - lo) / span * cells), cells - 1).astype(np.int64)
+    cell = ij[:, 1] * cells + ij[:, 0]
+    by_cell = np.argsort(cell, kind="stable")  # grouped by cell, priority order within a cell
+    sorted_cells = cell[by_cell]
+    starts = np.flatnonzero(np.r_[True, sorted_cells[1:] != sorted_cells[:-1]])
+    rank = np.empty(len(uv), np.int64)
+    rank[by_cell] = np.arange(len(uv)) - np.repeat(starts, np.diff(np.r_[starts, len(uv)]))
+    return order[np.argsort(rank, kind="stable")]
+
+
 def features_from(detection, capacity: int = 256, cfg: KeypointConfig = KeypointConfig()) -> Features:
     """:class:`Features` of a :func:`detect` result (see :func:`detect_features`)."""
     if capacity < 1:
@@ -149,7 +180,10 @@ def features_from(detection, capacity: int = 256, cfg: KeypointConfig = Keypoint
     uv, out, valid = np.zeros((capacity, 2), np.float32), np.zeros((capacity, D), np.float32), np.zeros(capacity, bool)
     if desc is None or len(kps) == 0:
         return Features(uv, out, valid)
-    order = np.argsort([-k.response for k in kps], kind="stable")[:capacity]
+    order = np.argsort([-k.response for k in kps], kind="stable")
+    if cfg.spread_cells > 0:
+        order = spread_order(np.array([k.pt for k in kps], np.float64)[order], cfg.spread_cells, order)
+    order = order[:capacity]
     n = len(order)
     if cfg.detector == "sift":
         d = _rootsift(desc[order])
