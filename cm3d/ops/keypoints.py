@@ -33,7 +33,8 @@ class KeypointConfig:
         if self.max_matches < 1:
             raise ValueError("KeypointConfig.max_matches: must be >= 1")
         if self.contrast_threshold is not None and not self.contrast_threshold > 0:
-            raise ValueError(f"KeypointConfig.contrast_threshold: must be > 0 or None, got {self.contrast_threshold}")
+            raise ValueError(f"KeypointConfig.contrast_threshold: must be > 0 or None, "
+                             f"got {self.contrast_threshold}")
         if self.spread_cells < 0:
             raise ValueError(f"KeypointConfig.spread_cells: must be >= 0, got {self.spread_cells}")
 
@@ -121,8 +122,9 @@ def sequence_matches(images: np.ndarray, cfg: KeypointConfig = KeypointConfig())
 
 @struct.dataclass
 class Features:
-    """Detected keypoints of one image, strongest first: uv (N, 2) float32 pixels, desc (N, D)
-    float32 unit-norm descriptors, valid (N,) bool; N = capacity."""
+    """Detected keypoints of one image, strongest first (with ``KeypointConfig.spread_cells``: a round
+    robin over image cells, each cell's strongest first): uv (N, 2) float32 pixels, desc (N, D) float32
+    unit-norm descriptors, valid (N,) bool; N = capacity."""
 
     uv: np.ndarray
     desc: np.ndarray
