@@ -51,6 +51,7 @@ import numpy as np  # noqa: E402
 
 from cm3d import pipeline  # noqa: E402
 from cm3d.data import synthetic  # noqa: E402
+from cm3d.eval import metrics  # noqa: E402
 from cm3d.outputs import write_json  # noqa: E402
 
 METHODS = ("prior", "pnp", "no_memory", "memory")
@@ -173,18 +174,6 @@ def evaluate(seq, poses) -> dict:
     return metrics.evaluate_trajectories(ts, seq.gt.cam_to_world, ts, np.asarray(poses, np.float64))
 
 
-def visit_overlap(seq_a, seq_b, stride: int = 8, radius: float = 0.05) -> float:
-    """Share of visit B's ground-truth static points (every ``stride``-th pixel) within ``radius`` (m) of
-    visit A's: how much of the revisit's surface the first visit saw (``real_kitchen.py``'s measure)."""
-    from scipy.spatial import cKDTree
-
-    a, b = seq_a.gt.static_points(stride), seq_b.gt.static_points(stride)
-    if len(a) == 0 or len(b) == 0:
-        return 0.0
-    d, _ = cKDTree(a).query(b, distance_upper_bound=radius)
-    return float(np.mean(np.isfinite(d)))
-
-
 def scene_row(scene: int, frames: int, wcfg, quick: bool, use_cache: bool = False) -> dict:
     run = revisit_runs(scene, frames, wcfg, use_cache=use_cache, empty_bank_baseline=quick)
     seq = run["seqs"][1]
@@ -192,7 +181,8 @@ def scene_row(scene: int, frames: int, wcfg, quick: bool, use_cache: bool = Fals
     pnp, pnp_ok = pnp_baseline(seq, mem.masks, quick)
     est = {"prior": seq.cam_to_world, "pnp": pnp, "no_memory": nomem.poses, "memory": mem.poses}
     row = {"scene": scene, "recalled": recalled_earlier_map(mem), "pnp_ok": pnp_ok,
-           "overlap": visit_overlap(run["seqs"][0], seq),
+           # the share of the revisit's ground-truth static surface the first visit saw (5 cm; every 8th pixel)
+           "overlap": metrics.cloud_overlap(run["seqs"][0].gt.static_points(8), seq.gt.static_points(8)),
            "memory_landmarks": int(sum(w.memory_landmarks for w in mem.windows if w.memory_used)),
            "ate_visit1_prior": evaluate(run["seqs"][0], run["seqs"][0].cam_to_world)["ate"],
            "ate_visit1_cm3d": evaluate(run["seqs"][0], run["res_mem"][0].poses)["ate"]}

@@ -142,14 +142,6 @@ def map_errors(seq, poses, masks, cloud) -> dict:
     return {"acc": m["accuracy_median"], "comp": m["completion_median"]}
 
 
-def overlap(cloud_a: np.ndarray, cloud_b: np.ndarray, radius: float = 0.05) -> float:
-    """Fraction of ``cloud_b``'s points within ``radius`` (m) of ``cloud_a``'s."""
-    from scipy.spatial import cKDTree
-
-    d, _ = cKDTree(cloud_a).query(cloud_b, distance_upper_bound=radius)
-    return float(np.mean(np.isfinite(d)))
-
-
 def true_sim3(seq_a, seq_b) -> np.ndarray:
     """The Sim(3) (4, 4) from B's prior frame to A's: ``x_A = s_A T_A0^-1 T_B0 x_B / s_B``."""
     rel = np.linalg.inv(seq_a.gt.cam_to_world[0]) @ seq_b.gt.cam_to_world[0]
@@ -294,7 +286,8 @@ def main() -> None:
         print("\nground-truth overlap (%): column B's points within 5 cm of row A's\n")
         print("      " + " ".join(f"{b:5d}" for b in sorted(clouds)))
         for a in sorted(clouds):
-            print(f"{a:5d} " + " ".join(f"{100 * overlap(clouds[a], clouds[b]):5.0f}" for b in sorted(clouds)))
+            print(f"{a:5d} " + " ".join(f"{100 * metrics.cloud_overlap(clouds[a], clouds[b]):5.0f}"
+                                        for b in sorted(clouds)))
 
     print("\nmemory: B runs with the bank A's run left (reloc error of an accepted window vs the true Sim(3))\n")
     head = f"{'pair':>11s} {'kind':>8s} {'overlap':>7s} {'recalled':>8s} {'windows':>7s} {'top cand.':>9s} " \
@@ -315,7 +308,7 @@ def main() -> None:
             if any(ok for _, ok in wins):  # A's map before and after B's recalled windows merged into it
                 merged = merge_quality(seqs[a], results[a], map_points(banks[a], maps_a), map_points(bank_b, maps_a),
                                        np.concatenate([clouds[a], clouds[b]]))
-            memo[(a, b)] = (overlap(clouds[a], clouds[b]), wins, best, top, merged)
+            memo[(a, b)] = (metrics.cloud_overlap(clouds[a], clouds[b]), wins, best, top, merged)
         return memo[(a, b)]
 
     def window_errors(a, b, wins):
@@ -373,7 +366,7 @@ def main() -> None:
         win_ok = win_n = 0
         errs_all, false_pairs, low_pairs, high_pairs, high_recalled, merged_all = [], 0, 0, 0, 0, []
         for a, b in pairs:
-            ov = overlap(clouds[a], clouds[b])
+            ov = metrics.cloud_overlap(clouds[a], clouds[b])
             kind = "revisit" if ov >= 0.3 else ("distinct" if ov < 0.1 else "partial")
             ov, wins, errs, merged = show(a, b, kind)
             if kind == "revisit":

@@ -370,6 +370,18 @@ def mask_metrics(pred, gt, valid=None) -> dict:
 # Reconstruction (host)
 
 
+def cloud_overlap(cloud_a, cloud_b, radius: float = 0.05) -> float:
+    """Share of ``cloud_b``'s points (M, 3) within ``radius`` (metres) of ``cloud_a``'s (N, 3): how much of
+    a revisit's surface a first visit saw (0 when either cloud is empty)."""
+    from scipy.spatial import cKDTree
+
+    a, b = np.asarray(cloud_a, np.float64).reshape(-1, 3), np.asarray(cloud_b, np.float64).reshape(-1, 3)
+    if len(a) == 0 or len(b) == 0:
+        return 0.0
+    d, _ = cKDTree(a).query(b, distance_upper_bound=radius)
+    return float(np.mean(np.isfinite(d)))
+
+
 def reconstruction_metrics(pred_pts, gt_pts, pred_normals=None, gt_normals=None) -> dict:
     """Point-cloud accuracy/completion (metres) and normal consistency, 7-Scenes / NICE-SLAM protocol.
 

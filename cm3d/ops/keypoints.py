@@ -138,18 +138,15 @@ def detect_features(image: np.ndarray, mask: np.ndarray | None = None, capacity:
                     cfg: KeypointConfig = KeypointConfig(), contrast_threshold: float | None = None) -> Features:
     """Keypoints and descriptors of ``image`` inside ``mask`` (H, W) bool, padded to ``capacity``,
     strongest first. SIFT descriptors are RootSIFT (Euclidean = Hellinger); ORB's 256 bits become
-    +-1/16 (unit L2). ``contrast_threshold``: SIFT's (OpenCV default 0.04)."""
-    import cv2
-
+    +-1/16 (unit L2). ``contrast_threshold``: SIFT's (overrides ``cfg.contrast_threshold``)."""
     if capacity < 1:
         raise ValueError(f"capacity: must be >= 1, got {capacity}")
     img = _gray(image)
     if mask is not None and np.asarray(mask).shape != img.shape:
         raise ValueError(f"mask: expected shape {img.shape}, got {np.asarray(mask).shape}")
-    if cfg.detector == "sift" and contrast_threshold is not None:
-        det = cv2.SIFT_create(nfeatures=cfg.max_features, contrastThreshold=contrast_threshold)
-    else:
-        det, _ = _detector(cfg)
+    if contrast_threshold is not None:
+        cfg = dataclasses.replace(cfg, contrast_threshold=contrast_threshold)
+    det, _ = _detector(cfg)
     m8 = None if mask is None else np.asarray(mask, np.uint8) * 255
     return features_from(det.detectAndCompute(img, m8), capacity, cfg)
 
