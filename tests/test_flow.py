@@ -117,3 +117,24 @@ def test_spread_order_is_a_round_robin_over_grid_cells():
     assert n == int(spread.valid.sum()) and n > 50  # the same detections, another order
     assert sorted(map(tuple, plain.uv[:n])) == sorted(map(tuple, spread.uv[:n]))
     assert len(keypoints.detect(img)[0]) < n  # the lower contrast threshold finds more
+
+
+def test_match_contrast_matches_as_a_detection_at_that_contrast():
+    img0 = _texture(160, 200, seed=4)
+    fade = np.linspace(0.1, 1.0, 200)[None, :, None]  # contrast falls off to the left: weak keypoints there
+    img0 = (128 + (img0.astype(np.float32) - 128) * fade).astype(np.uint8)
+    img1 = _shifted(img0, 4, 3)
+    low = keypoints.KeypointConfig(max_matches=512, contrast_threshold=0.01)
+    filt = keypoints.KeypointConfig(max_matches=512, contrast_threshold=0.01, match_contrast=0.04)
+    high = keypoints.KeypointConfig(max_matches=512, contrast_threshold=0.04)
+    d_low = [keypoints.detect(im, low) for im in (img0, img1)]
+    d_high = [keypoints.detect(im, high) for im in (img0, img1)]
+    assert len(d_low[0][0]) > 1.3 * len(d_high[0][0])  # the low threshold finds many weak keypoints
+    got = keypoints.match_detections(*d_low, filt)
+    ref = keypoints.match_detections(*d_high, high)
+    n = int(ref.valid.sum())
+    assert n >= 20 and int(got.valid.sum()) == n
+    assert np.array_equal(got.uv0[:n], ref.uv0[:n]) and np.array_equal(got.uv1[:n], ref.uv1[:n])
+    assert int(keypoints.match_detections(*d_low, low).valid.sum()) > n  # unfiltered: more matches
+    with pytest.raises(ValueError, match="match_contrast"):
+        keypoints.KeypointConfig(match_contrast=0.0)

@@ -26,6 +26,11 @@ class KeypointConfig:
     # bounding box (every cell's strongest, then every cell's second, ...), so that a frame's memory
     # features cover its weakly textured surfaces too, not only its few strongest corners
     spread_cells: int = 0
+    # the SIFT contrast threshold the keypoints used for matching must pass (None: all detected): with a
+    # low ``contrast_threshold`` for the memory features, matching only keypoints of response >=
+    # match_contrast / 3 (OpenCV's test: |DoG| * nOctaveLayers >= threshold) keeps the matches, and their
+    # cost, of a detection at ``match_contrast``
+    match_contrast: float | None = None
 
     def __post_init__(self):
         if self.detector not in ("sift", "orb"):
@@ -35,6 +40,8 @@ class KeypointConfig:
         if self.contrast_threshold is not None and not self.contrast_threshold > 0:
             raise ValueError(f"KeypointConfig.contrast_threshold: must be > 0 or None, "
                              f"got {self.contrast_threshold}")
+        if self.match_contrast is not None and not self.match_contrast > 0:
+            raise ValueError(f"KeypointConfig.match_contrast: must be > 0 or None, got {self.match_contrast}")
         if self.spread_cells < 0:
             raise ValueError(f"KeypointConfig.spread_cells: must be >= 0, got {self.spread_cells}")
 
@@ -82,11 +89,24 @@ def detect(image: np.ndarray, cfg: KeypointConfig = KeypointConfig(), mask: np.n
     return det.detectAndCompute(_gray(image), m8)
 
 
+_SIFT_OCTAVE_LAYERS = 3  # OpenCV's default nOctaveLayers, which _detector keeps
+
+
+def _for_matching(det, cfg: KeypointConfig):
+    """The keypoints of a :func:`detect` result that ``cfg.match_contrast`` lets into matching."""
+    kps, desc = det
+    if cfg.match_contrast is None or cfg.detector != "sift" or desc is None or len(kps) == 0:
+        return kps, desc
+    keep = np.flatnonzero(np.array([k.response for k in kps]) * _SIFT_OCTAVE_LAYERS >= cfg.match_contrast)
+    return [kps[i] for i in keep], desc[keep]
+
+
 def match_detections(det0, det1, cfg: KeypointConfig = KeypointConfig()) -> Matches:
-    """Ratio-test matches between two :func:`detect` results, best first, padded to ``cfg.max_matches``."""
+    """Ratio-test matches between two :func:`detect` results, best first, padded to ``cfg.max_matches``
+    (only keypoints that pass ``cfg.match_contrast``)."""
     import cv2
 
-    (k0, d0), (k1, d1) = det0, det1
+    (k0, d0), (k1, d1) = _for_matching(det0, cfg), _for_matching(det1, cfg)
     norm = _norm(cfg)
     N = cfg.max_matches
     uv0, uv1, valid = np.zeros((N, 2), np.float32), np.zeros((N, 2), np.float32), np.zeros(N, bool)

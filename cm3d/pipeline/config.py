@@ -42,7 +42,8 @@ class PipelineConfig:
     between memory keyframes; feature_capacity: 3D keypoints per frame; flow / keypoints: the
     OpenCV front end (SIFT at contrast 0.01, its memory features a round robin over an 8 x 8 image grid:
     a revisit then finds keypoints on the weakly textured walls a first visit saw, docs/memory.md,
-    stop 44); global_graph: the pose graph over every frame after the windows
+    stop 44; the motion cue's matches only among keypoints that pass OpenCV's default 0.04, as before:
+    the same matches at a third of the matching cost); global_graph: the pose graph over every frame after the windows
     (:mod:`cm3d.pipeline.global_graph`, host side); seed: the RANSAC key.
 
     ``batching="native"``: the LM's sequential ``custom_vmap`` rule fails inside ``scan`` + ``cond``."""
@@ -66,7 +67,8 @@ class PipelineConfig:
     keyframe_threshold: float = 0.25
     feature_capacity: int = 128
     flow: FlowConfig = FlowConfig()
-    keypoints: KeypointConfig = KeypointConfig(max_matches=256, contrast_threshold=0.01, spread_cells=8)
+    keypoints: KeypointConfig = KeypointConfig(max_matches=256, contrast_threshold=0.01, spread_cells=8,
+                                               match_contrast=0.04)
     global_graph: GlobalGraphConfig = GlobalGraphConfig()
     seed: int = 0
 
