@@ -302,6 +302,50 @@ def test_the_photometric_check_refuses_poses_the_images_disagree_with():
     assert check_refinement(seq, exact, exact).kept  # unchanged poses: nothing to earn
 
 
+def test_the_in_graph_warp_error_equals_the_host_check():
+    """cm3d.ops.warp (the memory solution's photometric test, pure JAX) against the host check's numpy
+    warp_errors: the same errors and paired pixels; jit / vmap invariant; frames outside ``valid`` skipped."""
+    import jax
+    import jax.numpy as jnp
+
+    from cm3d.ops import se3, warp
+    from cm3d.pipeline.photometric import warp_errors
+
+    seq = synthetic.generate(0, 0, 7, "moderate", WORLD)
+    dyn = np.asarray(seq.gt.dynamic_mask, bool)
+    rng = np.random.default_rng(1)
+    prior = np.asarray(seq.cam_to_world, np.float64)
+    moved = np.einsum("nij,njk->nik", prior, np.asarray(se3.exp(np.concatenate(
+        [0.01 * rng.normal(size=(7, 3)), 0.01 * rng.normal(size=(7, 3))], 1)), np.float64))
+    H, W = seq.depth.shape[1:]
+    step = warp.sample_step(H, W, 1000)
+    args = (jnp.asarray(seq.images), jnp.asarray(seq.depth), jnp.asarray(seq.depth_conf), jnp.asarray(~dyn),
+            jnp.asarray(seq.intrinsic, jnp.float32))
+    trajs = jnp.asarray(np.stack([prior, moved]), jnp.float32)
+    fn = jax.jit(warp.paired_warp_errors, static_argnames=("gaps", "step"))
+    for valid in (np.ones(7, bool), np.arange(7) < 5):
+        ref, n = warp_errors(types.SimpleNamespace(images=seq.images[valid], depth=seq.depth[valid],
+                                                   depth_conf=seq.depth_conf[valid], intrinsic=seq.intrinsic[valid]),
+                             [prior[valid], moved[valid]], dyn[valid], (1, 2, 4), 1000)
+        got, m = fn(*args, trajs, jnp.asarray(valid), gaps=(1, 2, 4), step=step)
+        assert int(m) == int(n.sum()) > 1000
+        np.testing.assert_allclose(np.asarray(got), ref.mean(0), rtol=2e-4)
+        assert got[1] > got[0]  # the perturbed poses disagree with the images
+    swapped = jax.vmap(lambda t: fn(*args, t, jnp.ones(7, bool), gaps=(1, 2, 4), step=step)[0])(
+        jnp.stack([trajs, trajs[::-1]]))
+    np.testing.assert_allclose(np.asarray(swapped[1]), np.asarray(swapped[0])[::-1], rtol=1e-6)
+    # the memory solution's test (pipeline.memory_graph.photometric_test) on these frames as a window
+    from cm3d.pipeline.memory_graph import photometric_test
+
+    win = types.SimpleNamespace(image=args[0], depth=args[1], conf=args[2], static=args[3], intrinsic=args[4],
+                                valid=jnp.ones(7, bool))
+    assert not bool(photometric_test(win, trajs[0], trajs[1])[0])  # memory moved the poses off: refused
+    assert bool(photometric_test(win, trajs[1], trajs[0])[0])
+    assert bool(photometric_test(win, trajs[0], trajs[0])[0])  # a tie is no objection
+    blind = types.SimpleNamespace(**{**vars(win), "static": jnp.zeros_like(args[3])})
+    assert bool(photometric_test(blind, trajs[0], trajs[1])[0])  # no paired pixel: no evidence, no objection
+
+
 # ---------------------------------------------------------------------------------------------
 # metrics that do not mislead
 # ---------------------------------------------------------------------------------------------

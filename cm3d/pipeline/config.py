@@ -37,7 +37,9 @@ class PipelineConfig:
     run by :func:`~cm3d.pipeline.window.gate_refinement`), track_check, memory (for a new bank; a
     loaded one brings its own): the stages' options; use_memory: recall / verify / update at all;
     min_memory_landmarks: fewest landmarks on the surface for the memory solution; memory_sigma_voxels:
-    floor of the point-to-plane std in map voxels; map_min_support: stored entries drop voxels with
+    floor of the point-to-plane std in map voxels; memory_photometric: the memory solution is used only
+    when the window's static pixels, warped with the prior depth, agree at least as well under it as
+    under the memory-free poses (besides its χ² test; memory_graph.photometric_test); map_min_support: stored entries drop voxels with
     fewer samples than this share of the median voxel's; keyframe_threshold: descriptor distance
     between memory keyframes; feature_capacity: 3D keypoints per frame; flow / keypoints: the
     OpenCV front end (SIFT at contrast 0.01, its memory features a round robin over an 8 x 8 image grid:
@@ -65,6 +67,7 @@ class PipelineConfig:
     min_memory_landmarks: int = 12
     memory_sigma_voxels: float = 0.5
     keyframe_threshold: float = 0.25
+    memory_photometric: bool = True
     feature_capacity: int = 128
     flow: FlowConfig = FlowConfig()
     keypoints: KeypointConfig = KeypointConfig(max_matches=256, contrast_threshold=0.01, spread_cells=8,

@@ -11,7 +11,8 @@ import jax.numpy as jnp
 from flax import struct
 
 from cm3d import memory, trajectory
-from cm3d.ops import robust, sim3
+from cm3d.ops import robust, sim3, warp
+from cm3d.pipeline import photometric as ph
 from cm3d.pipeline.config import PipelineConfig
 from cm3d.pipeline.state import Landmarks, MemoryCursor, Window
 from cm3d.pipeline.window import chi2_threshold, rescale_window, structure_only_cost
@@ -62,7 +63,8 @@ class RecallReport:
 @struct.dataclass
 class MemoryStep:
     """What the memory did to one window: final poses (W, 4, 4), report, landmarks held on the
-    remembered surface, whether the memory solution was used, and its χ² test (stat, threshold)."""
+    remembered surface, whether the memory solution was used, its χ² test (stat, threshold) and its
+    photometric test (grey error of the memory-free and the memory solution, :func:`photometric_test`)."""
 
     poses: Any
     report: RecallReport
@@ -70,13 +72,15 @@ class MemoryStep:
     used: Any
     stat: Any
     threshold: Any
+    photo_free: Any
+    photo_memory: Any
 
     @classmethod
     def off(cls, poses, top_k: int) -> "MemoryStep":
         """Memory switched off: the memory-free poses, an empty report."""
         z = jnp.zeros((), jnp.float32)
         return cls(poses=poses, report=RecallReport.empty(top_k), landmarks=jnp.zeros((), jnp.int32),
-                   used=jnp.zeros((), bool), stat=z, threshold=z)
+                   used=jnp.zeros((), bool), stat=z, threshold=z, photo_free=z, photo_memory=z)
 
 
 def window_entry(win: Window, mem_cfg: memory.MemoryConfig, cfg: PipelineConfig,
@@ -178,6 +182,21 @@ def memory_refinement(win: Window, lm_: Landmarks, ref0: trajectory.Refinement, 
     return fixed, accept, A, matched, stat, thr
 
 
+def photometric_test(win: Window, free, with_memory):
+    """Do the memory solution's poses make the window's static pixels agree at least as well as the
+    memory-free ones (:func:`cm3d.ops.warp.paired_warp_errors`, prior depth, the run-level check's gaps,
+    pixel budget and tie, :mod:`cm3d.pipeline.photometric`)? Evidence neither solution was fitted to:
+    the χ² test only asks whether the memory solution still fits the window's own tracks, which it
+    can while it moves the poses away from the truth. Fewer than ``MIN_PIXELS`` paired pixels: no
+    evidence, no objection. Returns (ok, error free, error memory)."""
+    _, h, w = win.depth.shape
+    err, n = warp.paired_warp_errors(win.image, win.depth, win.conf, win.static, win.intrinsic,
+                                     jnp.stack([free, with_memory]).astype(jnp.float32), win.valid, ph.GAPS,
+                                     warp.sample_step(h, w, ph.MAX_PIXELS), ph.TRUNCATE)
+    ok = (n < ph.MIN_PIXELS) | (err[1] <= err[0] * (1 + ph.TIE))
+    return ok, err[0].astype(jnp.float32), err[1].astype(jnp.float32)
+
+
 def recall_verify_update(bank: memory.MemoryBank, cursor: MemoryCursor, key, win: Window, lm_: Landmarks,
                          ref: trajectory.Refinement, poses, obs: trajectory.Observations,
                          mem_cfg: memory.MemoryConfig, cfg: PipelineConfig):
@@ -195,7 +214,10 @@ def recall_verify_update(bank: memory.MemoryBank, cursor: MemoryCursor, key, win
     surface = memory_surface(bank, use_map, use_T, d_scene)
     first = obs.valid.reshape(lm_.obs_valid.shape)[:, 0]  # tracks that passed the prior check
     pm, ok, A, matched, stat, thr = memory_refinement(win, lm_, ref, obs, first, surface, cfg, new_map)
+    photo_ok, e_free, e_mem = photometric_test(win, poses, pm)
     used = (use_map >= 0) & ref.refined & ok
+    if cfg.memory_photometric:
+        used = used & photo_ok
     poses = jnp.where(used, pm.astype(jnp.float32), poses)
     use_T = (use_T @ A.astype(jnp.float32)).astype(jnp.float32)
     entry = window_entry(win.replace(poses=poses), mem_cfg, cfg, cfg.map_min_support)
@@ -214,4 +236,5 @@ def recall_verify_update(bank: memory.MemoryBank, cursor: MemoryCursor, key, win
     report = recall_report(ident, map_id, jnp.where(hit, ident.verification.transform, jnp.eye(4)), created,
                            target_T)
     return bank, cursor, MemoryStep(poses=poses, report=report, landmarks=jnp.sum(matched).astype(jnp.int32),
-                                    used=used, stat=stat.astype(jnp.float32), threshold=thr.astype(jnp.float32))
+                                    used=used, stat=stat.astype(jnp.float32), threshold=thr.astype(jnp.float32),
+                                    photo_free=e_free, photo_memory=e_mem)

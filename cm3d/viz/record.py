@@ -59,6 +59,17 @@ class SequenceFacts:
     agreement: float
 
 
+def _memory_solution(w) -> str:
+    """Whether a window's memory solution was used, or which test refused it."""
+    if w.memory_used:
+        return "used"
+    if w.memory_stat > w.memory_threshold:
+        return f"refused by its chi2 test ({w.memory_stat:.1f} > {w.memory_threshold:.1f})"
+    if w.photo_memory > w.photo_free:
+        return f"refused by its photometric test (grey error {w.photo_memory:.4f} > {w.photo_free:.4f} memory-free)"
+    return "not used (too few landmarks on the remembered surface, or non-finite)"
+
+
 def frame_layers(inputs, outputs, num_frames: int, cfg, every: int = 1) -> tuple[FrameLayers, float]:
     """The cues of every ``every``-th real frame recomputed on the host (one jitted call per frame)
     from the run's NumPy :class:`cm3d.pipeline.Inputs` (the other frames' cue layers stay empty);
@@ -156,7 +167,7 @@ def _decision(w, mem_cfg) -> tuple[str, str]:
     if w.accepted:
         return (head + f"{cands}; ACCEPTED map {w.recalled_map}: {w.inlier_count} ICP inliers, RMSE {w.rmse:.4f}, "
                 f"fitness {w.fitness:.3f}, scale {w.scale:.3f}; {w.memory_landmarks} memory landmarks in the graph, "
-                f"memory solution {'used' if w.memory_used else 'refused by its chi2 test'}"), "INFO"
+                f"memory solution {_memory_solution(w)}"), "INFO"
     if not w.candidates:
         why = "no candidate (the hashed 2D recall found no stored map)"
     elif max(w.keypoint_inliers, default=0) < mem_cfg.min_keypoint_inliers:
