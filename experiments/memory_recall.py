@@ -85,6 +85,7 @@ from cm3d.data import synthetic
 from cm3d.data.atomic import atomic_write
 from cm3d.ops import descriptors, keypoints
 from cm3d.outputs import write_json
+from cm3d.pipeline.config import PipelineConfig
 
 WORLD = synthetic.WorldConfig(height=120, width=160, supersample=1, fps=1.0)
 # the product configuration (cm3d run's, the demo's: memory.MemoryConfig's defaults) with this bank's
@@ -99,7 +100,11 @@ KP_PER_FRAME = 64  # (the legacy cache files' detection capacity per frame; see 
 RAW_KP_PER_FRAME = 128  # SIFT keypoints per frame lifted and cached before the capacity cut (see load_visits)
 FLOOR = keypoints.FloorConfig()  # floor orthophoto keypoints (cm3d.ops.keypoints.floor_features)
 FLOOR_CACHED = 1024  # floor keypoints cached per visit (strongest first); a capacity is a prefix
-SIFT_CONTRAST = 0.01  # OpenCV's default 0.04 finds almost nothing on weakly textured rooms at 120x160
+# the product's detection (PipelineConfig.keypoints): SIFT at contrast 0.01 (OpenCV's default 0.04 finds
+# almost nothing on weakly textured rooms at 120x160), each frame's keypoints a round robin over an 8 x 8
+# image grid (stop 44; --spread-cells 0: strongest first, the benchmark's order before stop 45)
+SIFT_CONTRAST = PipelineConfig().keypoints.contrast_threshold
+SPREAD_CELLS = PipelineConfig().keypoints.spread_cells
 KEYFRAME_THRESHOLD = 0.1
 LEVEL = "slight"
 UNSEEN_SEED = 10_000
@@ -144,7 +149,8 @@ def prepare(scene_seed: int, visit: int, frames: int, capacity: int, cfg: memory
     t1 = time.perf_counter()
     static = ~seq.gt.dynamic_mask
     desc = _frame_descriptors(jnp.asarray(seq.images), jnp.asarray(static))
-    feats = keypoints.detect_sequence(seq.images, static, per_frame, contrast_threshold=SIFT_CONTRAST)
+    feats = keypoints.detect_sequence(seq.images, static, per_frame, keypoints.KeypointConfig(spread_cells=SPREAD_CELLS),
+                                      contrast_threshold=SIFT_CONTRAST)
     t2 = time.perf_counter()
     key = (capacity, frames)
     if key not in _PREP:
@@ -174,7 +180,8 @@ def _cache_key(args, per_frame: int = KP_PER_FRAME, version: int = 2) -> str:
 def raw_path(seed: int, visit: int, frames: int) -> Path:
     """The cache file of a visit with *all* its lifted keypoints (``RAW_KP_PER_FRAME`` per frame, round
     robin over frames, before any capacity cut): any keypoint capacity is a prefix of it."""
-    return CACHE / f"raw-{_cache_key([seed, visit, frames], RAW_KP_PER_FRAME, 3)}.npz"
+    args = [seed, visit, frames] + ([{"spread_cells": SPREAD_CELLS}] if SPREAD_CELLS else [])
+    return CACHE / f"raw-{_cache_key(args, RAW_KP_PER_FRAME, 3)}.npz"
 
 
 def cut_keypoints(v: Visit, capacity: int) -> Visit:
@@ -254,7 +261,7 @@ def load_visits(specs, use_cache: bool, raw: bool = False, floor: int = 0) -> li
         if use_cache and rp.exists():
             out.append(cut_keypoints(_read(rp, frames * RAW_KP_PER_FRAME), capacity))
             continue
-        if use_cache and not raw and legacy.exists():
+        if use_cache and not raw and not SPREAD_CELLS and legacy.exists():
             out.append(_read(legacy, capacity))
             continue
         v = prepare(seed, visit, frames, frames * RAW_KP_PER_FRAME, per_frame=RAW_KP_PER_FRAME)
@@ -581,7 +588,7 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def main(argv=None):
-    global WORLD
+    global WORLD, SPREAD_CELLS
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--json", type=Path)
@@ -591,7 +598,11 @@ def main(argv=None):
                     help="only fit the acceptance model on the tuning split and print it as MemoryConfig defaults")
     ap.add_argument("--size", default=None, type=_size, metavar="HxW",
                     help=f"render size (default {WORLD.height}x{WORLD.width}; its own cache files)")
+    ap.add_argument("--spread-cells", type=int, default=SPREAD_CELLS, metavar="N",
+                    help=f"each frame's keypoints as a round robin over an N x N grid (default {SPREAD_CELLS}: "
+                         "the product's, PipelineConfig.keypoints; 0: strongest first; its own cache files)")
     args = ap.parse_args(argv)
+    SPREAD_CELLS = args.spread_cells
     if args.size:
         WORLD = dataclasses.replace(WORLD, height=args.size[0], width=args.size[1])
     quick = args.quick
