@@ -331,19 +331,20 @@ def test_the_in_graph_warp_error_equals_the_host_check():
         assert int(m) == int(n.sum()) > 1000
         np.testing.assert_allclose(np.asarray(got), ref.mean(0), rtol=2e-4)
         assert got[1] > got[0]  # the perturbed poses disagree with the images
-    swapped = jax.vmap(lambda t: fn(*args, t, jnp.ones(7, bool), gaps=(1, 2, 4), step=step)[0])(
-        jnp.stack([trajs, trajs[::-1]]))
-    np.testing.assert_allclose(np.asarray(swapped[1]), np.asarray(swapped[0])[::-1], rtol=1e-6)
-    # the memory solution's test (pipeline.memory_graph.photometric_test) on these frames as a window
+    # the memory solution's test (pipeline.memory_graph.photometric_test) on these frames as a window,
+    # vmapped over (memory-free, memory) cases: memory moved the poses off (refused), the other way round,
+    # a tie (no objection), and no static pixel at all (no evidence, no objection)
     from cm3d.pipeline.memory_graph import photometric_test
 
-    win = types.SimpleNamespace(image=args[0], depth=args[1], conf=args[2], static=args[3], intrinsic=args[4],
-                                valid=jnp.ones(7, bool))
-    assert not bool(photometric_test(win, trajs[0], trajs[1])[0])  # memory moved the poses off: refused
-    assert bool(photometric_test(win, trajs[1], trajs[0])[0])
-    assert bool(photometric_test(win, trajs[0], trajs[0])[0])  # a tie is no objection
-    blind = types.SimpleNamespace(**{**vars(win), "static": jnp.zeros_like(args[3])})
-    assert bool(photometric_test(blind, trajs[0], trajs[1])[0])  # no paired pixel: no evidence, no objection
+    def test(static, free, with_memory):
+        win = types.SimpleNamespace(image=args[0], depth=args[1], conf=args[2], static=static, intrinsic=args[4],
+                                    valid=jnp.ones(7, bool))
+        return photometric_test(win, free, with_memory)[0]
+
+    a, b, none = trajs[0], trajs[1], jnp.zeros_like(args[3])
+    ok = jax.jit(jax.vmap(test))(jnp.stack([args[3], args[3], args[3], none]), jnp.stack([a, b, a, a]),
+                                 jnp.stack([b, a, a, b]))
+    assert np.asarray(ok).tolist() == [False, True, True, True]
 
 
 # ---------------------------------------------------------------------------------------------
