@@ -41,8 +41,8 @@ class PipelineConfig:
     when the window's static pixels, warped with the prior depth, agree at least as well under it as
     under the memory-free poses (besides its χ² test; memory_graph.photometric_test);
     map_min_support: stored entries drop voxels with fewer samples than this share of the median
-    voxel's; keyframe_threshold: descriptor distance between memory keyframes; feature_capacity: 3D keypoints per frame; flow / keypoints: the
-    OpenCV front end (SIFT at contrast 0.01, its memory features a round robin over an 8 x 8 image grid:
+    voxel's; keyframe_threshold: descriptor distance between memory keyframes; feature_capacity: 3D
+    keypoints per frame; flow / keypoints: the OpenCV front end (SIFT at contrast 0.01, its memory features a round robin over an 8 x 8 image grid:
     a revisit then finds keypoints on the weakly textured walls a first visit saw, docs/memory.md,
     stop 44; the motion cue's matches only among keypoints that pass OpenCV's default 0.04, as before:
     the same matches at a sixth of the matching cost); global_graph: the pose graph over every frame
