@@ -32,21 +32,22 @@ class TrackCheckConfig:
 class PipelineConfig:
     """All options of the pipeline (hashable, a static argument of the compiled step).
 
-    keyframe_interval: frames per window (paper: 20); stride: cues, landmarks and memory run at
-    1/stride resolution; motion, track, assoc, refine (pixel noise at reduced resolution; its gate
-    run by :func:`~cm3d.pipeline.window.gate_refinement`), track_check, memory (for a new bank; a
-    loaded one brings its own): the stages' options; use_memory: recall / verify / update at all;
+    keyframe_interval: frames per window (paper: 20); stride: cues, landmarks and memory run at 1/stride
+    resolution; motion, track, assoc, refine (pixel noise at reduced resolution; its gate run by
+    :func:`~cm3d.pipeline.window.gate_refinement`), track_check, memory (for a new bank; a loaded one
+    brings its own): the stages' options; use_memory: recall / verify / update at all;
     min_memory_landmarks: fewest landmarks on the surface for the memory solution; memory_sigma_voxels:
     floor of the point-to-plane std in map voxels; memory_photometric: the memory solution is used only
     when the window's static pixels, warped with the prior depth, agree at least as well under it as
-    under the memory-free poses (besides its χ² test; memory_graph.photometric_test);
-    map_min_support: stored entries drop voxels with fewer samples than this share of the median
-    voxel's; keyframe_threshold: descriptor distance between memory keyframes; feature_capacity: 3D
-    keypoints per frame; flow / keypoints: the OpenCV front end (SIFT at contrast 0.01, its memory features a round robin over an 8 x 8 image grid:
-    a revisit then finds keypoints on the weakly textured walls a first visit saw, docs/memory.md,
-    stop 44; the motion cue's matches only among keypoints that pass OpenCV's default 0.04, as before:
-    the same matches at a sixth of the matching cost); global_graph: the pose graph over every frame
-    after the windows (:mod:`cm3d.pipeline.global_graph`, host side); seed: the RANSAC key.
+    under the memory-free poses (besides its χ² test; memory_graph.photometric_test); map_min_support:
+    stored entries drop voxels with fewer samples than this share of the median voxel's;
+    keyframe_threshold: descriptor distance between memory keyframes; feature_capacity: 3D keypoints per
+    frame; flow / keypoints: the OpenCV front end (SIFT at contrast 0.01, its memory features a round
+    robin over an 8 x 8 image grid: a revisit then finds keypoints on the weakly textured walls a first
+    visit saw, docs/memory.md, stop 44; the motion cue's matches only among keypoints that pass OpenCV's
+    default 0.04, as before: the same matches at a sixth of the matching cost); global_graph: the pose
+    graph over every frame after the windows (:mod:`cm3d.pipeline.global_graph`, host side); seed: the
+    RANSAC key.
 
     ``batching="native"``: the LM's sequential ``custom_vmap`` rule fails inside ``scan`` + ``cond``."""
 
