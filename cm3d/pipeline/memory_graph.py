@@ -214,9 +214,10 @@ def recall_verify_update(bank: memory.MemoryBank, cursor: MemoryCursor, key, win
     surface = memory_surface(bank, use_map, use_T, d_scene)
     first = obs.valid.reshape(lm_.obs_valid.shape)[:, 0]  # tracks that passed the prior check
     pm, ok, A, matched, stat, thr = memory_refinement(win, lm_, ref, obs, first, surface, cfg, new_map)
-    photo_ok, e_free, e_mem = photometric_test(win, poses, pm)
     used = (use_map >= 0) & ref.refined & ok
-    if cfg.memory_photometric:
+    e_free = e_mem = jnp.full((), jnp.nan, jnp.float32)
+    if cfg.memory_photometric:  # static: switched off, the warps are not computed at all
+        photo_ok, e_free, e_mem = photometric_test(win, poses, pm)
         used = used & photo_ok
     poses = jnp.where(used, pm.astype(jnp.float32), poses)
     use_T = (use_T @ A.astype(jnp.float32)).astype(jnp.float32)
