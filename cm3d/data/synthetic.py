@@ -144,12 +144,25 @@ def _look(position, yaw, pitch, roll):
     return _pose(R, position)
 
 
-def camera_trajectory(scene: Scene, visit: int, num_frames: int, cfg: WorldConfig, loop: bool = False) -> np.ndarray:
+#: a revisit (:func:`camera_trajectory`'s ``near``): the largest shift of the path's centre, in units of the
+#: room's free half-size, and the largest turn of its starting view
+REVISIT_SHIFT = 0.25
+REVISIT_TURN_DEG = 30.0
+
+
+def camera_trajectory(scene: Scene, visit: int, num_frames: int, cfg: WorldConfig, loop: bool = False,
+                      near: int | None = None) -> np.ndarray:
     """A smooth, rotating camera path (S, 4, 4) inside the free middle of the room.
 
     loop: a closed path instead (same scene-dependent centre, amplitudes and start): one cycle of
     the position, the view turning away by up to ``loop_turn`` (~115°) and back, so the last frames
-    revisit the first frames' place and view (the last pose equals the first)."""
+    revisit the first frames' place and view (the last pose equals the first).
+
+    near: a revisit of visit ``near``'s place: its path starts from that visit's centre moved by up to a
+    quarter of the free half-size and from its starting view turned by up to 30° about the vertical
+    (:data:`REVISIT_SHIFT`, :data:`REVISIT_TURN_DEG`); amplitudes, frequencies, phases and turning
+    direction stay this visit's own. Without it, two visits of a short path may look at opposite
+    halves of the room and share no surface."""
     rng = np.random.default_rng([scene.seed, visit, 1])
     t = np.arange(num_frames) / cfg.fps
     free = scene.room_half[:2] - 1.6
@@ -157,6 +170,14 @@ def camera_trajectory(scene: Scene, visit: int, num_frames: int, cfg: WorldConfi
     amp = rng.uniform(0.3, 0.6, 2) * np.minimum(free, 1.0) + 0.1
     w, ph = rng.uniform(0.25, 0.5, 2), rng.uniform(0, 2 * np.pi, 2)
     yaw0, yaw_rate = rng.uniform(0, 2 * np.pi), rng.choice([-1, 1]) * rng.uniform(0.1, 0.2)
+    if near is not None and near != visit:
+        base = np.random.default_rng([scene.seed, near, 1])  # visit `near`'s draws, in the same order
+        base_centre = base.uniform(-0.5, 0.5, 2) * free
+        base.uniform(size=2), base.uniform(size=2), base.uniform(size=2)  # its amp, w, ph
+        base_yaw0 = base.uniform(0, 2 * np.pi)
+        own = np.random.default_rng([scene.seed, visit, 5])
+        centre = np.clip(base_centre + own.uniform(-REVISIT_SHIFT, REVISIT_SHIFT, 2) * free, -0.5 * free, 0.5 * free)
+        yaw0 = base_yaw0 + np.deg2rad(own.uniform(-REVISIT_TURN_DEG, REVISIT_TURN_DEG))
     if loop:
         loop_turn = 2.0
         u = np.arange(num_frames) / max(num_frames - 1, 1)  # 0 .. 1, the path's phase
@@ -390,10 +411,10 @@ def render(prims: Primitives, cams: np.ndarray, cfg: WorldConfig):
 
 
 def render_ground_truth(scene: Scene, visit: int, num_frames: int, cfg: WorldConfig = WorldConfig(),
-                        loop: bool = False):
+                        loop: bool = False, near: int | None = None):
     """Images (S,H,W,3) uint8 and :class:`GroundTruth` of one visit of a scene (``loop``: the closed
-    camera path of :func:`camera_trajectory`)."""
-    cams = camera_trajectory(scene, visit, num_frames, cfg, loop=loop)
+    camera path, ``near``: a revisit of that visit's place; :func:`camera_trajectory`)."""
+    cams = camera_trajectory(scene, visit, num_frames, cfg, loop=loop, near=near)
     prims = assemble(scene, visit, cams, cfg)
     rgb, depth, obj, flow = render(prims, cams, cfg)
     K = np.broadcast_to(intrinsics(cfg), (num_frames, 3, 3)).copy()
