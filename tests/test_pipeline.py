@@ -140,20 +140,19 @@ def test_recall_feeds_the_same_window_and_memory_never_hurts(visits, exact0, sca
     assert _ate(noisy, again.poses) <= _ate(noisy, alone.poses) + 1e-6
 
 
-def test_memory_without_a_recall_leaves_the_sequence_as_memory_off(visits, prepared, scanned):
+def test_memory_without_a_recall_leaves_the_sequence_as_memory_off(visits, scanned):
     """Memory never makes a sequence worse when it recalls nothing (issue #7): a sequence that recalls
     no earlier map keeps exactly its memory-free poses, while its windows still go to the memory
     (stored, then merged). Reference: the same sequence through the module's memory-free program
-    (``scanned``)."""
+    (``scanned``). The memory run is ``pipeline.run``'s (the program of the test above and of the
+    experiments' 48x64 smoke runs); its windows' chained poses are what the scan returns."""
     mem_cfg = pipeline.small_config()
-    st = pipeline.init_state(prepared[1], mem_cfg)
-    _, out = pipeline.run_sequence(st, prepared[1], mem_cfg)
-    own = pipeline.collect(out, visits[1], mem_cfg)
+    _, (own,) = pipeline.run([visits[1]], mem_cfg)
     assert own.windows[0].created_map and own.windows[1].map_id == own.windows[0].map_id
     assert not any(w.accepted or w.memory_used for w in own.windows)
     alone = pipeline.collect(scanned["outs"][1], visits[1], CFG)
-    np.testing.assert_allclose(own.poses, alone.poses, atol=1e-5)
-    assert _ate(visits[1], own.poses) <= _ate(visits[1], alone.poses) + 1e-9
+    np.testing.assert_allclose(own.chained, alone.poses, atol=1e-5)
+    assert _ate(visits[1], own.chained) <= _ate(visits[1], alone.poses) + 1e-9
 
 
 def test_rescale_window_undoes_a_shrunk_window():

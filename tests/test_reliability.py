@@ -276,8 +276,10 @@ def test_hole_heavy_depth_refines():
     seq = synthetic.generate(5, 0, 8, "moderate", WORLD)
     holed, m = _holes(seq, 0.2, 5)
     assert 0.19 < m.mean() < 0.21
-    cfg = pipeline.small_config(use_memory=False)
-    _, (clean, holes) = pipeline.run([seq, holed], cfg)
+    # the memory program, each sequence with its own empty bank (nothing to recall: the memory-free poses,
+    # tests/test_pipeline.py), which is the program the experiments' 48x64 smoke runs compile
+    cfg = pipeline.small_config()
+    (_, (clean,)), (_, (holes,)) = pipeline.run([seq], cfg), pipeline.run([holed], cfg)
     got = [outputs.sequence_metrics(r)["ate_reduction_pct"] for r in (clean, holes)]
     assert got[0] > 40 and got[1] > got[0] - 10, got  # within 10 points of the hole-free refinement
     assert holes.report.refinement_kept
