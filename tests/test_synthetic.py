@@ -54,8 +54,8 @@ def test_visits_share_the_static_scene_but_not_cameras_or_movers(visits):
 
 
 def test_a_revisit_starts_near_the_first_visits_place_and_view():
-    """``near``: the revisit's path starts from the first visit's centre (within REVISIT_SHIFT of the free
-    half-size) and view (within REVISIT_TURN_DEG), while its own motion is unchanged after the start; the
+    """``near``: the revisit starts from the first visit's starting view (within REVISIT_TURN_DEG) on a path
+    centred near that visit's (within REVISIT_SHIFT of the free half-size), with its own motion; the
     paper-table scenes whose independent visits shared no surface (1 and 2, measured: 0.0 %) now share it."""
     cfg = synthetic.WorldConfig(height=48, width=64, supersample=1)
 

@@ -158,8 +158,8 @@ def camera_trajectory(scene: Scene, visit: int, num_frames: int, cfg: WorldConfi
     the position, the view turning away by up to ``loop_turn`` (~115°) and back, so the last frames
     revisit the first frames' place and view (the last pose equals the first).
 
-    near: a revisit of visit ``near``'s place: its path starts from that visit's centre moved by up to a
-    quarter of the free half-size and from its starting view turned by up to 30° about the vertical
+    near: a revisit of visit ``near``'s place: its path's centre is that visit's, moved by up to a
+    quarter of the free half-size, and its starting view is that visit's, turned by up to 30° about the vertical
     (:data:`REVISIT_SHIFT`, :data:`REVISIT_TURN_DEG`); amplitudes, frequencies, phases and turning
     direction stay this visit's own. Without it, two visits of a short path may look at opposite
     halves of the room and share no surface."""
