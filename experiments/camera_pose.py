@@ -6,7 +6,8 @@ Each scene is visited twice (different camera paths and moving objects, VGGT-lik
 *moderate* noise: 3° / 3 cm RMS pose error, 1 % depth noise). The second visit is a revisit of the
 first one's place (:func:`cm3d.data.synthetic.camera_trajectory`'s ``near``: its path's centre lies
 within a quarter of the room's free half-size of the first visit's, its starting view within 30° of
-that visit's, and it moves and turns on its own); until stop 46 it was drawn independently, and scenes 1 and 2 then shared none of their surface.
+that visit's, and it moves and turns on its own); until stop 46 it was drawn independently, and scenes 1
+and 2 then shared none of their surface.
 Visit 1 runs first through the whole pipeline (:func:`cm3d.pipeline.run`, as ``cm3d run``: the global
 pose graph and the checks included) and fills the memory bank; the table is about the
 revisit (visit 2), compared with the ground truth by ATE / RPE trans (m, Sim(3)-aligned) and RPE rot

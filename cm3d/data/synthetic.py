@@ -150,6 +150,16 @@ REVISIT_SHIFT = 0.25
 REVISIT_TURN_DEG = 30.0
 
 
+def _path_draws(scene: Scene, visit: int, free: np.ndarray):
+    """A visit's seeded path parameters: centre, amplitudes, frequencies, phases, start yaw, yaw rate."""
+    rng = np.random.default_rng([scene.seed, visit, 1])
+    centre = rng.uniform(-0.5, 0.5, 2) * free
+    amp = rng.uniform(0.3, 0.6, 2) * np.minimum(free, 1.0) + 0.1
+    w, ph = rng.uniform(0.25, 0.5, 2), rng.uniform(0, 2 * np.pi, 2)
+    yaw0, yaw_rate = rng.uniform(0, 2 * np.pi), rng.choice([-1, 1]) * rng.uniform(0.1, 0.2)
+    return centre, amp, w, ph, yaw0, yaw_rate
+
+
 def camera_trajectory(scene: Scene, visit: int, num_frames: int, cfg: WorldConfig, loop: bool = False,
                       near: int | None = None) -> np.ndarray:
     """A smooth, rotating camera path (S, 4, 4) inside the free middle of the room.
@@ -159,22 +169,15 @@ def camera_trajectory(scene: Scene, visit: int, num_frames: int, cfg: WorldConfi
     revisit the first frames' place and view (the last pose equals the first).
 
     near: a revisit of visit ``near``'s place: its path's centre is that visit's, moved by up to a
-    quarter of the free half-size, and its starting view is that visit's, turned by up to 30° about the vertical
-    (:data:`REVISIT_SHIFT`, :data:`REVISIT_TURN_DEG`); amplitudes, frequencies, phases and turning
-    direction stay this visit's own. Without it, two visits of a short path may look at opposite
+    quarter of the free half-size, and its starting view is that visit's, turned by up to 30° about
+    the vertical (:data:`REVISIT_SHIFT`, :data:`REVISIT_TURN_DEG`); amplitudes, frequencies, phases and
+    turning direction stay this visit's own. Without it, two visits of a short path may look at opposite
     halves of the room and share no surface."""
-    rng = np.random.default_rng([scene.seed, visit, 1])
     t = np.arange(num_frames) / cfg.fps
     free = scene.room_half[:2] - 1.6
-    centre = rng.uniform(-0.5, 0.5, 2) * free
-    amp = rng.uniform(0.3, 0.6, 2) * np.minimum(free, 1.0) + 0.1
-    w, ph = rng.uniform(0.25, 0.5, 2), rng.uniform(0, 2 * np.pi, 2)
-    yaw0, yaw_rate = rng.uniform(0, 2 * np.pi), rng.choice([-1, 1]) * rng.uniform(0.1, 0.2)
+    centre, amp, w, ph, yaw0, yaw_rate = _path_draws(scene, visit, free)
     if near is not None and near != visit:
-        base = np.random.default_rng([scene.seed, near, 1])  # visit `near`'s draws, in the same order
-        base_centre = base.uniform(-0.5, 0.5, 2) * free
-        base.uniform(size=2), base.uniform(size=2), base.uniform(size=2)  # its amp, w, ph
-        base_yaw0 = base.uniform(0, 2 * np.pi)
+        base_centre, *_, base_yaw0, _ = _path_draws(scene, near, free)
         own = np.random.default_rng([scene.seed, visit, 5])
         centre = np.clip(base_centre + own.uniform(-REVISIT_SHIFT, REVISIT_SHIFT, 2) * free, -0.5 * free, 0.5 * free)
         yaw0 = base_yaw0 + np.deg2rad(own.uniform(-REVISIT_TURN_DEG, REVISIT_TURN_DEG))
