@@ -75,6 +75,53 @@ def _hits() -> int:
     return getattr(_thread, "hits", 0)
 
 
+_from_cache: set = set()  # fingerprints of the executables JAX took from its persistent cache in this process
+
+
+def _identity(executable):
+    """An executable's XLA fingerprint (its program's; ``id`` where the backend gives none)."""
+    try:
+        fp = executable.fingerprint
+    except Exception:  # noqa: BLE001
+        fp = None
+    return fp if fp is not None else id(executable)
+
+
+def _install_hit_marker() -> bool:
+    """Wrap JAX's compile step so that every executable it takes from the persistent cache, in any
+    call of this process, is known as such. JAX keeps executables in memory: a plain jit call served
+    by that cache, then :func:`compiled` of the same function, gives :func:`compiled` the kept
+    executable with no compile step and no cache bytes to record (it is not stored then)."""
+    try:
+        from jax._src import compiler
+    except ImportError:
+        return False
+    step = getattr(compiler, "compile_or_get_cached", None)
+    if step is None:
+        return False
+
+    def marking(*args, **kwargs):
+        hits = _hits()
+        executable = step(*args, **kwargs)
+        if _hits() > hits:
+            _from_cache.add(_identity(executable))
+        return executable
+
+    compiler.compile_or_get_cached = marking
+    return True
+
+
+_HIT_MARKER = _install_hit_marker()
+
+
+def _served_from_cache(prog) -> bool:
+    """Whether ``prog``'s executable came from JAX's persistent cache (unknown: assumed so)."""
+    if not _HIT_MARKER:
+        return True
+    executable = getattr(prog._executable, "xla_executable", None)
+    return executable is None or _identity(executable) in _from_cache
+
+
 def set_cache_dir(path) -> None:
     """Keep serialised programs in ``path`` (created on the first write); ``None``: in memory only."""
     _state["dir"] = None if path is None else Path(path)
@@ -248,10 +295,12 @@ def compiled(name: str, fn, static: dict, *args):
             finally:
                 served, _thread.recording = _thread.recording, None
             if _state["dir"] is not None:
-                if _hits() == hits:  # compiled here and now
+                if _hits() > hits:  # from JAX's persistent cache now: store the entry's own bytes
+                    if len(served) == 1:
+                        _store(_path(name, key), key, prog, served[0])
+                elif not _served_from_cache(prog):  # compiled in this process, now or kept by JAX
                     _store(_path(name, key), key, prog)
-                elif len(served) == 1:  # from JAX's persistent cache: store the entry's own bytes
-                    _store(_path(name, key), key, prog, served[0])
+                # else: kept by JAX from an earlier persistent-cache hit, bytes unknown: not stored
         _loaded[key] = prog
         return prog, how
 

@@ -182,6 +182,38 @@ def test_a_persistent_cache_hit_is_stored_with_its_own_bytes(cache):
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", old[1])
 
 
+def test_an_executable_jax_holds_from_an_earlier_call_is_not_stored(cache):
+    """A plain jit call that JAX served from its persistent cache leaves the executable in JAX's
+    in-process cache; compiled() then gets that executable without a backend step, so it neither
+    compiled it nor read its bytes. Re-serialised, it lost kernels ("Function wrapped_slice not
+    found" when the stored file was loaded and run: the suite's order met it at stop 47). Not
+    stored: the next process compiles or loads it itself."""
+    f = jax.jit(lambda x: (jnp.cumsum(x[5:21] * 3.0)[::3], jnp.arange(7.0) * x[1]))
+    x = jnp.arange(40, dtype=jnp.float32)
+    old = (jax.config.jax_persistent_cache_min_compile_time_secs, jax.config.jax_persistent_cache_min_entry_size_bytes)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    try:
+        f(x)  # into JAX's persistent cache (or from it, on a rerun)
+        jax.clear_caches()
+        hits = programs._hits()
+        want = f(x)  # a persistent-cache hit, kept in memory by JAX
+        assert programs._hits() > hits
+        prog, how = programs.compiled("held", f, {}, x)
+        assert how == "compiled" and _equal(prog(x), want)
+        assert not list(cache.glob("held-*.jaxexe"))
+        programs.clear_memory()
+        jax.clear_caches()
+        prog, how = programs.compiled("held", f, {}, x)  # a backend step now: stored, and it loads
+        assert how == "compiled" and len(list(cache.glob("held-*.jaxexe"))) == 1
+        programs.clear_memory()
+        prog, how = programs.compiled("held", f, {}, x)
+        assert how == "loaded" and _equal(prog(x), want)
+    finally:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", old[0])
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", old[1])
+
+
 def test_the_folder_keeps_the_most_recently_used_programs_per_name(cache, monkeypatch):
     """Every source edit stores new files: each name keeps its programs.KEEP most recently stored or
     loaded ones, and other names' files are untouched."""
