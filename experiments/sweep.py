@@ -19,9 +19,10 @@ and a plot of ATE vs noise level per config, in ``--out`` (default ``sweep_out/`
 time and throughput (sequences per second) for the batch sizes of ``--throughput``.
 
 Headline JSON keys: ``ate_prior_<level>``, ``ate_cm3d_<level>`` (mean over seeds, first config),
-``compile_s``, ``seq_per_s_<b>`` for each throughput batch size, ``devices``, ``sharded_equals_single``
-(the max |difference| of the batch's refined poses sharded vs each sequence run alone by
-:func:`cm3d.pipeline.run_sequence` on one device, when ``--check``).
+``compile_s``, ``seq_per_s_<b>`` for each throughput batch size, ``devices``, and with ``--check`` the
+batch against each sequence run alone (:func:`compare_alone`): ``sharded_equals_single``, ``poses_within_1e-3``,
+``window_ends_equal``, ``mask_agreement`` (each sequence run alone by :func:`cm3d.pipeline.run_sequence`
+on the default device).
 """
 
 from __future__ import annotations
@@ -39,12 +40,14 @@ def _parse():
     ap.add_argument("--gmm-k", type=int, nargs="+", default=[3], help="GMM components (config axis)")
     ap.add_argument("--frames", type=int, default=8)
     ap.add_argument("--size", type=int, nargs=2, default=[96, 128], metavar=("H", "W"))
-    ap.add_argument("--batching", choices=["vmap", "map"], default="map")
+    ap.add_argument("--batching", choices=["vmap", "map"], default=None,
+                    help="map (default; cheaper on CPUs) or vmap (the default with --quick)")
     ap.add_argument("--throughput", type=int, nargs="*", default=[1, 8, 32], help="batch sizes to time")
     ap.add_argument("--check", action="store_true", help="also run on one device and compare")
     ap.add_argument("--out", default="sweep_out")
     ap.add_argument("--quick", action="store_true",
-                    help="2 seeds x 1 level on 2 emulated devices, with --check, no throughput runs")
+                    help="2 seeds x 2 levels of 6 frames, vmap batching on 2 emulated devices, with --check, "
+                         "no throughput runs")
     ap.add_argument("--json", default=None, metavar="PATH")
     return ap.parse_args()
 
@@ -160,6 +163,18 @@ def evaluate(outputs, seqs, rows, cfg):
     return table
 
 
+def compare_alone(outputs, alone, seqs, cfg) -> dict:
+    """The batch's outputs against each sequence run alone: ``sharded_equals_single`` (max |refined
+    pose difference|; ~1e-7 with ``map``: the same program per sequence), ``poses_within_1e-3`` (share
+    of pose entries), ``window_ends_equal`` (1.0 / 0.0), ``mask_agreement`` (share of pixels). With
+    ``vmap`` the batched operations round differently, which moves the LM's optimum along directions
+    tiny windows leave nearly flat (the 48x64 ``--quick`` run: most entries within 1e-3)."""
+    diff = np.abs(poses_of(alone, seqs, cfg) - poses_of(outputs, seqs, cfg))
+    return {"sharded_equals_single": float(diff.max()), "poses_within_1e-3": float(np.mean(diff <= 1e-3)),
+            "window_ends_equal": float(np.array_equal(np.asarray(alone.window_end), np.asarray(outputs.window_end))),
+            "mask_agreement": float(np.mean(np.asarray(alone.mask) == np.asarray(outputs.mask)))}
+
+
 def poses_of(outputs, seqs, cfg):
     return np.stack([pipeline.collect(jax.tree.map(lambda a: a[b], outputs), s, cfg).poses
                      for b, s in enumerate(seqs)])
@@ -199,8 +214,11 @@ def plot(path: Path, table: list[dict], levels) -> None:
 
 
 def main(args) -> None:
-    if args.quick:
-        args.seeds, args.levels, args.frames, args.throughput, args.check = [0, 1], ["moderate"], 6, [], True
+    if args.quick:  # the test of vmap + sharding == one sequence at a time (tests/test_sweep.py)
+        # two sequences per device, so that vmap batches more than one
+        args.seeds, args.levels, args.frames, args.throughput, args.check = [0, 1], ["slight", "moderate"], 6, [], True
+        args.batching = args.batching or "vmap"
+    args.batching = args.batching or "map"
     devices = jax.devices()
     mesh = Mesh(np.array(devices), ("batch",))
     # every sequence starts from an empty bank, so the memory can never recall (and since a sequence's
@@ -227,10 +245,11 @@ def main(args) -> None:
                 figures[f"ate_prior_{lv}"] = float(np.mean([r["ate_prior"] for r in sel]))
                 figures[f"ate_cm3d_{lv}"] = float(np.mean([r["ate_cm3d"] for r in sel]))
             if args.check:
-                one = run_alone(cfg, inputs)
-                diff = float(np.max(np.abs(poses_of(one, seqs, cfg) - poses_of(outputs, seqs, cfg))))
-                figures["sharded_equals_single"] = diff
-                print(f"sharded over {len(devices)} device(s) vs one device: max |pose difference| {diff:.2e}")
+                figures |= compare_alone(outputs, run_alone(cfg, inputs), seqs, cfg)
+                print(f"sharded over {len(devices)} device(s) ({args.batching}) vs one sequence at a time: max |pose "
+                      f"difference| {figures['sharded_equals_single']:.2e} ({figures['poses_within_1e-3']:.1%} of "
+                      f"entries within 1e-3), window ends equal {bool(figures['window_ends_equal'])}, masks agree on "
+                      f"{figures['mask_agreement']:.2%} of pixels")
 
     print(f"\n{'config':>14} {'level':>9} | {'ATE prior':>9} {'ATE cm3d':>9} | {'RPEr prior':>10} "
           f"{'RPEr cm3d':>9} | {'mask IoU':>8}   (mean over {len(args.seeds)} seeds)")
