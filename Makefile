@@ -25,7 +25,7 @@ test: setup
 	@# kernel's default limit (65530) LLVM aborts the worker mid-run (a core showed 65532 mappings).
 	@m=$$(cat /proc/sys/vm/max_map_count 2>/dev/null || echo 262144); [ $$m -ge 262144 ] || sysctl -qw vm.max_map_count=262144 2>/dev/null \
 	  || echo "warning: vm.max_map_count is $$m and could not be raised; a long test worker may abort"
-	$(VENV)/bin/python -m pytest -n auto --dist worksteal
+	$(VENV)/bin/python -m pytest -n auto --dist loadgroup
 
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis

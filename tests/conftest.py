@@ -58,12 +58,33 @@ def shared_data() -> Path:
 
 
 # The slowest modules first (each holds tests of 15-80 s: compiled pipelines, experiment smoke
-# runs), so that the xdist workers, which steal work from each other (``--dist worksteal``), end
-# together instead of one worker finishing a long test alone at the end of the run.
+# runs), so that the xdist workers, which take the next test as they finish one, end together instead
+# of one worker finishing a long test alone at the end of the run.
 SLOW_FIRST = ("test_sweep.py", "test_experiments.py", "test_cli.py", "test_rerun.py", "test_pipeline.py",
               "test_align.py", "test_reliability.py", "test_lm.py", "test_memory.py")
+# Modules whose tests share a module fixture that compiles a large program (15-30 s): each runs whole
+# on one worker, or every worker that takes one of its tests compiles the fixture again (stop 47:
+# test_pipeline's ``scanned`` 28 s of set-up on each of the two workers, test_memory's ``visits`` 28 s
+# each, test_rerun's ``demo`` 15 s each, in one run).
+ONE_WORKER = ("test_pipeline.py", "test_memory.py", "test_rerun.py")
 
 
 def pytest_collection_modifyitems(config, items):
     rank = {name: i for i, name in enumerate(SLOW_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(SLOW_FIRST)))
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadgroup``: a unit of work is a test, or a whole module of :data:`ONE_WORKER`; the
+    workers take the next unit as they finish one, the units with most tests first. (xdist's own
+    ``xdist_group`` marks do not group under pytest 9: pytest-dev/pytest-xdist#1386.)"""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class ModuleGroups(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            module = nodeid.split("::", 1)[0]
+            return module if Path(module).name in ONE_WORKER else nodeid
+
+    return ModuleGroups(config, log)
