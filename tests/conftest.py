@@ -65,8 +65,10 @@ SLOW_FIRST = ("test_sweep.py", "test_experiments.py", "test_cli.py", "test_rerun
 # Modules whose tests share a module fixture that compiles a large program (15-30 s): each runs whole
 # on one worker, or every worker that takes one of its tests compiles the fixture again (stop 47:
 # test_pipeline's ``scanned`` 28 s of set-up on each of the two workers, test_memory's ``visits`` 28 s
-# each, test_rerun's ``demo`` 15 s each, in one run).
-ONE_WORKER = ("test_pipeline.py", "test_memory.py", "test_rerun.py")
+# each, test_rerun's ``demo`` 15 s each, in one run). Modules of one unit share it: test_rerun's demo
+# and test_pipeline's memory tests compile the same 48x64 memory program (82 s and 52 s when the two
+# ran at once on the two workers); one after the other, the second reads it from JAX's cache.
+ONE_WORKER = {"test_pipeline.py": "pipeline48", "test_rerun.py": "pipeline48", "test_memory.py": "memory"}
 
 
 def pytest_collection_modifyitems(config, items):
@@ -75,7 +77,7 @@ def pytest_collection_modifyitems(config, items):
 
 
 def pytest_xdist_make_scheduler(config, log):
-    """``--dist loadgroup``: a unit of work is a test, or a whole module of :data:`ONE_WORKER`; the
+    """``--dist loadgroup``: a unit of work is a test, or the modules of one :data:`ONE_WORKER` unit; the
     workers take the next unit as they finish one, the units with most tests first. (xdist's own
     ``xdist_group`` marks do not group under pytest 9: pytest-dev/pytest-xdist#1386.)"""
     if config.getvalue("dist") != "loadgroup":
@@ -84,7 +86,6 @@ def pytest_xdist_make_scheduler(config, log):
 
     class ModuleGroups(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:
-            module = nodeid.split("::", 1)[0]
-            return module if Path(module).name in ONE_WORKER else nodeid
+            return ONE_WORKER.get(Path(nodeid.split("::", 1)[0]).name, nodeid)
 
     return ModuleGroups(config, log)
