@@ -38,8 +38,9 @@ class PipelineConfig:
     brings its own): the stages' options; use_memory: recall / verify / update at all;
     min_memory_landmarks: fewest landmarks on the surface for the memory solution; memory_sigma_voxels:
     floor of the point-to-plane std in map voxels; memory_photometric: the memory solution is used only
-    when the window's static pixels, warped with the prior depth, agree at least as well under it as
-    under the memory-free poses (besides its χ² test; memory_graph.photometric_test); map_min_support:
+    when the window's static pixels, warped with the prior depth, agree better under it than under the
+    memory-free poses, by more than the photometric tie (besides its χ² test;
+    memory_graph.photometric_test); map_min_support:
     stored entries drop voxels with fewer samples than this share of the median voxel's;
     keyframe_threshold: descriptor distance between memory keyframes; feature_capacity: 3D keypoints per
     frame; flow / keypoints: the OpenCV front end (SIFT at contrast 0.01, its memory features a round
