@@ -72,7 +72,7 @@ class WindowRecord:
     log_nfa: float = 0.0  # ... log10 false alarms (accept < MemoryConfig.max_log_nfa)
     decision: str = ""  # which test accepted / rejected the verified candidate, and by how much
     photo_free: float = float("nan")  # grey error (levels) of the window's static pixels: memory-free poses ...
-    photo_memory: float = float("nan")  # ... and the memory solution's (used only when not higher)
+    photo_memory: float = float("nan")  # ... and the memory solution's (used only when lower by more than the tie)
 
     @classmethod
     def from_result(cls, w, memory_on: bool) -> "WindowRecord":
