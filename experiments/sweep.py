@@ -21,7 +21,7 @@ time and throughput (sequences per second) for the batch sizes of ``--throughput
 Headline JSON keys: ``ate_prior_<level>``, ``ate_cm3d_<level>`` (mean over seeds, first config),
 ``compile_s``, ``seq_per_s_<b>`` for each throughput batch size, ``devices``, and with ``--check`` the
 batch against each sequence run alone (:func:`compare_alone`): ``sharded_equals_single``, ``poses_within_1e-3``,
-``window_ends_equal``, ``mask_agreement`` (each sequence run alone by :func:`cm3d.pipeline.run_sequence`
+``window_ends_equal``, ``windows_equal``, ``mask_agreement`` (each sequence run alone by :func:`cm3d.pipeline.run_sequence`
 on the default device).
 """
 
@@ -166,12 +166,16 @@ def evaluate(outputs, seqs, rows, cfg):
 def compare_alone(outputs, alone, seqs, cfg) -> dict:
     """The batch's outputs against each sequence run alone: ``sharded_equals_single`` (max |refined
     pose difference|; ~1e-7 with ``map``: the same program per sequence), ``poses_within_1e-3`` (share
-    of pose entries), ``window_ends_equal`` (1.0 / 0.0), ``mask_agreement`` (share of pixels). With
-    ``vmap`` the batched operations round differently, which moves the LM's optimum along directions
-    tiny windows leave nearly flat (the 48x64 ``--quick`` run: most entries within 1e-3)."""
+    of pose entries), ``window_ends_equal`` and ``windows_equal`` (refined flags and observation counts;
+    1.0 / 0.0), ``mask_agreement`` (share of pixels). With ``vmap`` the batched operations round
+    differently, which moves the LM's optimum along directions tiny windows leave nearly flat (the
+    ``--quick`` run at 96x128: at most 9e-6)."""
+    same = lambda a, b: float(np.array_equal(np.asarray(a), np.asarray(b)))  # noqa: E731
     diff = np.abs(poses_of(alone, seqs, cfg) - poses_of(outputs, seqs, cfg))
     return {"sharded_equals_single": float(diff.max()), "poses_within_1e-3": float(np.mean(diff <= 1e-3)),
-            "window_ends_equal": float(np.array_equal(np.asarray(alone.window_end), np.asarray(outputs.window_end))),
+            "window_ends_equal": same(alone.window_end, outputs.window_end),
+            "windows_equal": same(alone.window.refined, outputs.window.refined)
+            * same(alone.window.observations, outputs.window.observations),
             "mask_agreement": float(np.mean(np.asarray(alone.mask) == np.asarray(outputs.mask)))}
 
 

@@ -21,7 +21,8 @@ def test_sharded_sweep_equals_single_device(tmp_path):
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
     figures = json.loads(out.read_text())
     assert figures["devices"] == 2
-    assert figures["window_ends_equal"] == 1.0 and figures["mask_agreement"] > 0.999
+    assert figures["window_ends_equal"] == 1.0 and figures["windows_equal"] == 1.0
+    assert figures["mask_agreement"] > 0.999
     # the objective agrees to float32 round-off; poses too, except along directions tiny windows leave
     # nearly flat, where the batched operations' round-off moves the LM's optimum (at 48x64, 4-frame
     # windows: 88 % of entries within 1e-3, the worst 0.039; here ~1e-5)
