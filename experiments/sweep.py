@@ -20,9 +20,9 @@ time and throughput (sequences per second) for the batch sizes of ``--throughput
 
 Headline JSON keys: ``ate_prior_<level>``, ``ate_cm3d_<level>`` (mean over seeds, first config),
 ``compile_s``, ``seq_per_s_<b>`` for each throughput batch size, ``devices``, and with ``--check`` the
-batch against each sequence run alone (:func:`compare_alone`): ``sharded_equals_single``, ``poses_within_1e-3``,
-``window_ends_equal``, ``windows_equal``, ``mask_agreement`` (each sequence run alone by :func:`cm3d.pipeline.run_sequence`
-on the default device).
+batch against each sequence run alone by :func:`cm3d.pipeline.run_sequence` on the default device
+(:func:`compare_alone`): ``sharded_equals_single``, ``poses_within_1e-3``, ``window_ends_equal``,
+``windows_equal``, ``mask_agreement``.
 """
 
 from __future__ import annotations
