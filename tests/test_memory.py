@@ -319,6 +319,42 @@ def test_update_map_adds_only_new_surface_unless_told_to_pool():
     assert np.max(cKDTree(got).query(before)[0]) < 1e-6
 
 
+def test_verifying_icp_keeps_the_keypoint_scale_and_refines_the_rest():
+    """The verifying ICP (``icp_scale=False``, the default) keeps the scale of its start (the keypoints'
+    RANSAC pose) exactly and pulls rotation and translation back from a perturbed start. With
+    ``icp_scale=True`` it fits the scale too, and on a query reaching past the map's edge (half of it
+    here) it leaves the true scale even when it starts there: the edge's points pull the query inwards
+    (docs/memory.md)."""
+    from scipy.spatial.transform import Rotation
+
+    from cm3d.memory.verify import icp_validation
+
+    _, entry = _entry_of()
+    pts, ok = np.asarray(entry.points), np.asarray(entry.point_valid)
+    # the map holds half of the cloud; the query is all of it in a frame 2x larger, rotated and shifted
+    half = entry.replace(point_valid=jnp.asarray(ok & (pts[:, 0] < np.median(pts[ok, 0]))))
+    bank, m = _insert(memory.empty(SEQ_CFG), half)
+    vs = float(bank.voxel_size[m])
+    R = Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix()
+    t = np.array([1.0, -2.0, 0.5])
+    query = entry.replace(points=jnp.asarray(2.0 * pts @ R.T + t, jnp.float32))
+    true = np.eye(4)
+    true[:3, :3], true[:3, 3] = R.T / 2.0, -R.T @ t / 2.0  # query -> map
+    off = np.eye(4)
+    off[:3, :3] = Rotation.from_rotvec([0.0, 0.02, 0.0]).as_matrix()
+    off[:3, 3] = [0.3 * vs, -0.3 * vs, 0.0]
+    fit = jax.jit(icp_validation, static_argnums=4)
+    scale = lambda M: float(np.cbrt(np.linalg.det(M[:3, :3])))  # noqa: E731
+    rot = lambda M: np.degrees(Rotation.from_matrix((M[:3, :3] / scale(M)) @ R).magnitude())  # noqa: E731
+    assert not SEQ_CFG.icp_scale
+    for init, cfg in ((true, SEQ_CFG), (off @ true, dataclasses.replace(SEQ_CFG, icp_iterations=20))):
+        T = np.asarray(fit(bank, m, query, jnp.asarray(init, jnp.float32), cfg)[0])
+        assert abs(scale(T) / scale(init) - 1) < 1e-5
+        assert rot(T) < 0.3 and np.linalg.norm(T[:3, 3] - true[:3, 3]) < 0.3 * vs  # from 1.15 degrees, 0.42 voxel
+    T_sim = np.asarray(fit(bank, m, query, jnp.asarray(true, jnp.float32), dataclasses.replace(SEQ_CFG, icp_scale=True))[0])
+    assert abs(scale(T_sim) / 0.5 - 1) > 0.01  # measured -2.2 %
+
+
 # ----------------------------------------------------------------------------------------------
 # 3D keypoints, Sim(3) RANSAC, grid neighbours, verification on real synthetic visits
 

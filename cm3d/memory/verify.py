@@ -130,14 +130,23 @@ def screen_poses(bank: MemoryBank, m, entry: MapEntry, Ts, cfg: MemoryConfig):
 
 
 def icp_validation(bank: MemoryBank, m, entry: MapEntry, init, cfg: MemoryConfig):
-    """Sim(3) ICP of an even subsample of the query's voxels against map ``m`` from ``init``:
-    (T, inlier count, fitness, rmse, colour agreement: share of inliers whose colour is within
-    ``cfg.max_colour_difference`` of their map point's)."""
+    """ICP of an even subsample of the query's voxels against map ``m`` from ``init``: (T, inlier count,
+    fitness, rmse, colour agreement: share of inliers whose colour is within ``cfg.max_colour_difference``
+    of their map point's). With ``cfg.icp_scale`` False (the default) T keeps ``init``'s scale (the
+    keypoints' RANSAC scale) and ICP fits rotation and translation; True fits Sim(3), whose scale a
+    partial overlap of voxel maps pulls down (docs/memory.md, stop 48)."""
     src, sv, idx = even_subsample(entry.points, entry.point_valid, cfg.icp_points)
     mc = map_cloud(bank, m)
     cell = GRID_CELL * jnp.maximum(mc.voxel_size, 1e-12)
-    r = icp_grid(src, sv, mc.points, mc.valid, init, distance=cell, iterations=cfg.icp_iterations, cell=cell,
-                 per_cell=cfg.grid_per_cell)
+    if cfg.icp_scale:
+        r = icp_grid(src, sv, mc.points, mc.valid, init, distance=cell, iterations=cfg.icp_iterations, cell=cell,
+                     per_cell=cfg.grid_per_cell)
+    else:
+        s0 = sim3.scale(init)
+        rigid = init.at[:3, :3].set(init[:3, :3] / s0)
+        r = icp_grid(src * s0, sv, mc.points, mc.valid, rigid, distance=cell, iterations=cfg.icp_iterations, cell=cell,
+                     per_cell=cfg.grid_per_cell, with_scale=False)
+        r = r.replace(transform=r.transform.at[:3, :3].multiply(s0))
     dc = jnp.linalg.norm(entry.colors[idx].astype(jnp.float32) - mc.colors[r.matches].astype(jnp.float32), axis=-1)
     agree = jnp.sum(r.inliers & (dc <= cfg.max_colour_difference)) / jnp.maximum(r.inlier_count, 1)
     return r.transform, r.inlier_count, r.fitness, r.inlier_rmse, agree
@@ -194,8 +203,9 @@ def verify(bank: MemoryBank, map_id, entry: MapEntry, cfg: MemoryConfig, key) ->
        scored by distinct 3D points, see :func:`keypoint_poses`): at least
        ``cfg.min_keypoint_inliers`` distinct inliers within ``cfg.ransac_distance`` map voxels;
     2. (``cfg.verification == "full"``) of the RANSAC poses the one with the most colour-consistent
-       overlap (:func:`screen_poses`) is refined by Sim(3) ICP of ``cfg.icp_points`` query voxels
-       against the map's (:func:`cm3d.solvers.icp.icp_grid`), accepted on absolute inlier count
+       overlap (:func:`screen_poses`) is refined by ICP (at its scale, see :func:`icp_validation`) of
+       ``cfg.icp_points`` query voxels against the map's (:func:`cm3d.solvers.icp.icp_grid`), accepted
+       on absolute inlier count
        (``cfg.min_inliers``), fitness (``cfg.min_fitness``) and inlier RMSE (``cfg.max_rmse`` voxels).
     Geometry is what rejects look-alike scenes. ``cfg.verification == "none"`` accepts any stored map.
     These thresholds decide here; :func:`identify` decides by its acceptance model instead (it needs
