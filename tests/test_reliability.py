@@ -110,7 +110,7 @@ def test_a_flipped_header_bit_fails_to_load(tmp_path, empty_bank):
     path = tmp_path / "bank.cm3d"
     memory.save(with_map(empty_bank, 0), path, CFG)
     data = path.read_bytes()
-    # accept_bias 0.50497 -> 8.50497 (the reported case), hash_seed 0 -> 1, max_rmse 0.775 -> 0.?75
+    # accept_bias 0.5388 -> 8.5388 (the reported case), hash_seed 0 -> 1, max_rmse 0.775 -> 0.?75
     for needle, offset, bit in ((b'"accept_bias": 0.5', 15, 3), (b'"hash_seed": 0', 13, 0), (b'"max_rmse": 0.7', 14, 0)):
         path.write_bytes(_flip(data, needle, offset, bit))
         with pytest.raises(memory.MemoryFileError, match="checksum mismatch"):
