@@ -138,18 +138,13 @@ def icp_validation(bank: MemoryBank, m, entry: MapEntry, init, cfg: MemoryConfig
     src, sv, idx = even_subsample(entry.points, entry.point_valid, cfg.icp_points)
     mc = map_cloud(bank, m)
     cell = GRID_CELL * jnp.maximum(mc.voxel_size, 1e-12)
-    if cfg.icp_scale:
-        r = icp_grid(src, sv, mc.points, mc.valid, init, distance=cell, iterations=cfg.icp_iterations, cell=cell,
-                     per_cell=cfg.grid_per_cell)
-    else:
-        s0 = sim3.scale(init)
-        rigid = init.at[:3, :3].set(init[:3, :3] / s0)
-        r = icp_grid(src * s0, sv, mc.points, mc.valid, rigid, distance=cell, iterations=cfg.icp_iterations, cell=cell,
-                     per_cell=cfg.grid_per_cell, with_scale=False)
-        r = r.replace(transform=r.transform.at[:3, :3].multiply(s0))
+    # without icp_scale the query is scaled by the keypoints' scale and fitted rigidly from init's rigid part
+    s0 = 1.0 if cfg.icp_scale else sim3.scale(init)
+    r = icp_grid(src * s0, sv, mc.points, mc.valid, init if cfg.icp_scale else sim3.to_rigid(init), distance=cell,
+                 iterations=cfg.icp_iterations, cell=cell, per_cell=cfg.grid_per_cell, with_scale=cfg.icp_scale)
     dc = jnp.linalg.norm(entry.colors[idx].astype(jnp.float32) - mc.colors[r.matches].astype(jnp.float32), axis=-1)
     agree = jnp.sum(r.inliers & (dc <= cfg.max_colour_difference)) / jnp.maximum(r.inlier_count, 1)
-    return r.transform, r.inlier_count, r.fitness, r.inlier_rmse, agree
+    return r.transform.at[:3, :3].multiply(s0), r.inlier_count, r.fitness, r.inlier_rmse, agree
 
 
 def decide(bank, m, T, scale, matches, kp_inliers, icp, cfg: MemoryConfig) -> Verification:
