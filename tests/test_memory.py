@@ -328,6 +328,7 @@ def test_verifying_icp_keeps_the_keypoint_scale_and_refines_the_rest():
     from scipy.spatial.transform import Rotation
 
     from cm3d.memory.verify import icp_validation
+    from cm3d.ops import sim3
 
     _, entry = _entry_of()
     pts, ok = np.asarray(entry.points), np.asarray(entry.point_valid)
@@ -344,8 +345,8 @@ def test_verifying_icp_keeps_the_keypoint_scale_and_refines_the_rest():
     off[:3, :3] = Rotation.from_rotvec([0.0, 0.02, 0.0]).as_matrix()
     off[:3, 3] = [0.3 * vs, -0.3 * vs, 0.0]
     fit = jax.jit(icp_validation, static_argnums=4)
-    scale = lambda M: float(np.cbrt(np.linalg.det(M[:3, :3])))  # noqa: E731
-    rot = lambda M: np.degrees(Rotation.from_matrix((M[:3, :3] / scale(M)) @ R).magnitude())  # noqa: E731
+    scale = sim3.scale
+    rot = lambda M: np.degrees(Rotation.from_matrix(sim3.rotation(M) @ R).magnitude())  # noqa: E731
     assert not SEQ_CFG.icp_scale
     for init in (true, off @ true):
         T = np.asarray(fit(bank, m, query, jnp.asarray(init, jnp.float32), SEQ_CFG)[0])
