@@ -26,9 +26,14 @@ def _program(x, y, cfg: _Cfg = _Cfg()):
 
 @pytest.fixture
 def cache(tmp_path):
+    """A program folder of the test's own, and no executable in memory, as in a fresh process. An
+    earlier test's plain jit call of ``_program`` that JAX served from its persistent cache (shared by
+    the run's workers: filled by whichever compiled it first) would otherwise hand ``compiled`` an
+    executable JAX keeps, which is by design not stored (the 'q' file missing at stop 48, by test order)."""
     before = programs.cache_dir()
     programs.set_cache_dir(tmp_path)
     programs.clear_memory()
+    jax.clear_caches()
     yield tmp_path
     programs.set_cache_dir(before)  # the suite's folder ($CM3D_PROGRAM_CACHE), for the tests after these
     programs.clear_memory()
