@@ -26,14 +26,9 @@ def _program(x, y, cfg: _Cfg = _Cfg()):
 
 @pytest.fixture
 def cache(tmp_path):
-    """A program folder of the test's own, and no executable in memory, as in a fresh process. An
-    earlier test's plain jit call of ``_program`` that JAX served from its persistent cache (shared by
-    the run's workers: filled by whichever compiled it first) would otherwise hand ``compiled`` an
-    executable JAX keeps, which is by design not stored (the 'q' file missing at stop 48, by test order)."""
     before = programs.cache_dir()
     programs.set_cache_dir(tmp_path)
     programs.clear_memory()
-    jax.clear_caches()
     yield tmp_path
     programs.set_cache_dir(before)  # the suite's folder ($CM3D_PROGRAM_CACHE), for the tests after these
     programs.clear_memory()
@@ -225,6 +220,10 @@ def test_the_folder_keeps_the_most_recently_used_programs_per_name(cache, monkey
     import os
 
     monkeypatch.setattr(programs, "KEEP", 3)
+    # no executable in memory, as in a fresh process: an earlier test's plain jit of _program, served from the
+    # run's shared persistent cache, would hand compiled("q") an executable JAX keeps, which by design is not
+    # stored (the "q" file was missing in one clean run of stop 48, by test order)
+    jax.clear_caches()
     x, y = _args()
     programs.compiled("q", _program, {"cfg": _Cfg()}, x, y)  # another name: never pruned by "p"
     sizes = (8, 16, 24, 32, 40)
