@@ -36,12 +36,12 @@ _thread = threading.local()
 
 
 def _install_hit_recorder() -> bool:
-    """Wrap JAX's persistent-cache reader so that :func:`compiled` can keep the bytes of an
-    executable JAX took from that cache. Such an executable re-serialised by
+    """Wrap JAX's persistent-cache reader so that the bytes of every executable JAX takes from that
+    cache are kept (:data:`_raw`). Such an executable re-serialised by
     ``serialize_executable.serialize`` loses kernels on XLA:CPU (jax 0.10: the loaded copy fails
     with "Function wrapped_iota not found"); the cache entry's own bytes load and run (JAX loads
-    them the same way). Records only while :func:`compiled` compiles in this thread; without the
-    reader (another jax) nothing is recorded and such a program is not stored."""
+    them the same way). Records only inside JAX's compile step (:func:`_install_hit_marker`);
+    without the reader (another jax) nothing is recorded and such a program is not stored."""
     try:
         from jax._src import compilation_cache as cc
 
@@ -75,7 +75,7 @@ def _hits() -> int:
     return getattr(_thread, "hits", 0)
 
 
-_from_cache: set = set()  # fingerprints of the executables JAX took from its persistent cache in this process
+_raw: dict = {}  # fingerprint -> cache-entry bytes of each executable JAX took from its persistent cache here
 
 
 def _identity(executable):
@@ -89,9 +89,9 @@ def _identity(executable):
 
 def _install_hit_marker() -> bool:
     """Wrap JAX's compile step so that every executable it takes from the persistent cache, in any
-    call of this process, is known as such. JAX keeps executables in memory: a plain jit call served
-    by that cache, then :func:`compiled` of the same function, gives :func:`compiled` the kept
-    executable with no compile step and no cache bytes to record (it is not stored then)."""
+    call of this process, is known as such, with the cache entry's bytes. JAX keeps executables in
+    memory: a plain jit call served by that cache, then :func:`compiled` of the same function, gives
+    :func:`compiled` the kept executable with no compile step; the bytes kept here store it."""
     try:
         from jax._src import compiler
     except ImportError:
@@ -101,10 +101,13 @@ def _install_hit_marker() -> bool:
         return False
 
     def marking(*args, **kwargs):
-        hits = _hits()
-        executable = step(*args, **kwargs)
+        hits, outer, _thread.recording = _hits(), getattr(_thread, "recording", None), []
+        try:
+            executable = step(*args, **kwargs)
+        finally:
+            served, _thread.recording = _thread.recording, outer
         if _hits() > hits:
-            _from_cache.add(_identity(executable))
+            _raw[_identity(executable)] = served[0] if len(served) == 1 else None
         return executable
 
     compiler.compile_or_get_cached = marking
@@ -114,12 +117,14 @@ def _install_hit_marker() -> bool:
 _HIT_MARKER = _install_hit_marker()
 
 
-def _served_from_cache(prog) -> bool:
-    """Whether ``prog``'s executable came from JAX's persistent cache (unknown: assumed so)."""
-    if not _HIT_MARKER:
-        return True
+def _served_from_cache(prog) -> tuple[bool, bytes | None]:
+    """Whether ``prog``'s executable came from JAX's persistent cache (unknown: assumed so), and
+    that cache entry's bytes (None: unknown)."""
     executable = getattr(prog._executable, "xla_executable", None)
-    return executable is None or _identity(executable) in _from_cache
+    if not (_HIT_MARKER and _HIT_RECORDER) or executable is None:
+        return True, None
+    fp = _identity(executable)
+    return fp in _raw, _raw.get(fp)
 
 
 def set_cache_dir(path) -> None:
@@ -289,18 +294,14 @@ def compiled(name: str, fn, static: dict, *args):
         prog = _load(_path(name, key), key) if _state["dir"] is not None else None
         if prog is None:
             how = "compiled"
-            hits, _thread.recording = _hits(), []
-            try:
-                prog = fn.lower(*args, **static).compile()
-            finally:
-                served, _thread.recording = _thread.recording, None
+            prog = fn.lower(*args, **static).compile()
             if _state["dir"] is not None:
-                if _hits() > hits:  # from JAX's persistent cache now: store the entry's own bytes
-                    if len(served) == 1:
-                        _store(_path(name, key), key, prog, served[0])
-                elif not _served_from_cache(prog):  # compiled in this process, now or kept by JAX
+                cached, raw = _served_from_cache(prog)
+                if not cached:  # compiled in this process, now or earlier (kept by JAX)
                     _store(_path(name, key), key, prog)
-                # else: kept by JAX from an earlier persistent-cache hit, bytes unknown: not stored
+                elif raw is not None:  # from JAX's persistent cache, now or earlier: the entry's bytes
+                    _store(_path(name, key), key, prog, raw)
+                # else: from that cache, bytes unknown (another jax): not stored
         _loaded[key] = prog
         return prog, how
 
