@@ -2,6 +2,7 @@
 
     .venv/bin/python experiments/long_sequence.py [--frames 120 --height 288 --width 384]
                                                   [--worlds own,held_out] [--level moderate] [--quick] [--json PATH]
+                                                  [--kitchen-camera folder|colour]
 
 One camera path per world (cm3d's own synthetic scene 0 visit 0, the held-out world's hall 0
 visit 0, :mod:`cm3d.data.held_out_world`, and the real 7-Scenes kitchen of ``../shared/data``: all
@@ -56,13 +57,17 @@ SEGMENT = 40
 KITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "sevenscenes_redkitchen"
 
 
+KITCHEN_CAMERA = "folder"  # --kitchen-camera: "folder" (the folder's one K) or "colour" (the Kinect colour camera)
+
+
 def kitchen(resize: float):
     """Every frame of the shared 7-Scenes redkitchen (390: every 2nd of 100-398 and 460-938, so one
-    jump of 62 frames) at ``resize``, with ground truth."""
+    jump of 62 frames) at ``resize``, with ground truth, seen by :data:`KITCHEN_CAMERA`."""
     from cm3d.data import sevenscenes
 
     folder = Path(os.environ.get("CM3D_SHARED_DATA", KITCHEN.parent)) / KITCHEN.name
-    return sevenscenes.load_sevenscenes(folder, resize=resize)
+    colour = sevenscenes.KINECT_COLOUR if KITCHEN_CAMERA == "colour" else None
+    return sevenscenes.load_sevenscenes(folder, resize=resize, colour=colour)
 
 
 def make_world(name: str, frames: int, height: int, width: int, level: str, resize: float = 0.5):
@@ -182,6 +187,7 @@ def format_table(rows, segment: int) -> str:
 
 
 def main() -> None:
+    global KITCHEN_CAMERA
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=120)
     ap.add_argument("--height", type=int, default=288)
@@ -194,8 +200,12 @@ def main() -> None:
     ap.add_argument("--chunk", type=int, default=40)
     ap.add_argument("--overlap", type=int, default=10)
     ap.add_argument("--quick", action="store_true", help="30 frames at 48x64, own world only; 2 chunks of 8")
+    ap.add_argument("--kitchen-camera", choices=("colour", "folder"), default=KITCHEN_CAMERA,
+                    help="folder: the folder's K (the depth camera's) for both images (default); colour: the "
+                         "Kinect colour camera's K and place, the depth registered into it (docs/real_data.md)")
     ap.add_argument("--json", default=None, metavar="PATH")
     args = ap.parse_args()
+    KITCHEN_CAMERA = args.kitchen_camera
     worlds = [w for w in args.worlds.split(",") if w]
     if args.quick:
         args.frames, args.height, args.width, args.segment = 30, 48, 64, 10

@@ -3,7 +3,7 @@ and memory recall on real revisits, with VGGT-like priors made from the ground t
 
     .venv/bin/python experiments/real_kitchen.py [--data DIR] [--segments 160,640,...]
                                                  [--frames 30] [--resize 1.0] [--level moderate]
-                                                 [--all-pairs] [--quick] [--json PATH]
+                                                 [--all-pairs] [--camera folder|colour] [--quick] [--json PATH]
 
 The folder (default ``../shared/data/sevenscenes_redkitchen``, or under ``$CM3D_SHARED_DATA``) is read with
 :func:`cm3d.data.sevenscenes.load_sevenscenes`. A *segment* is ``--frames`` (30) consecutive
@@ -12,7 +12,9 @@ listed frames, named by its first frame number (the folder holds every 2nd frame
 (:func:`cm3d.data.priors.make_priors`, level ``--level``, seed = its first frame number): first
 camera at the origin, unknown scale, pose noise + drift, depth jitter, sensor holes kept (depth 0,
 confidence 0). Images are resized by ``--resize`` (default 1: the sensor's 640x480, the back end
-at 320x240; 0.5: 320x240, 3.5x faster).
+at 320x240; 0.5: 320x240, 3.5x faster). ``--camera colour`` reads the colour frames with the Kinect
+colour camera (its K and place, the depth registered into it; docs/real_data.md) instead of the
+folder's one K (the depth camera's).
 
 Per segment (the pipeline alone on it, a fresh memory bank), against the ground truth:
 
@@ -104,13 +106,19 @@ def segment_starts(folder, frames: int) -> list[int]:
     return starts
 
 
-def load_segment(folder, start: int, frames: int, resize: float, level: str):
-    """Frames ``start, start + step, ...`` (``frames`` of them) with their VGGT-like prior."""
+CAMERAS = {"colour": sevenscenes.KINECT_COLOUR, "folder": None}
+
+
+def load_segment(folder, start: int, frames: int, resize: float, level: str, camera: str = "folder"):
+    """Frames ``start, start + step, ...`` (``frames`` of them) with their VGGT-like prior; ``camera``:
+    "folder" (the folder's one K for both images) or "colour" (the Kinect colour camera,
+    :data:`cm3d.data.sevenscenes.KINECT_COLOUR`: its K, the depth registered into it, its poses)."""
     nums = sevenscenes.frame_numbers(folder)
     i = nums.index(start)
     if i + frames > len(nums):
         raise ValueError(f"segment {start}: fewer than {frames} frames left")
-    seq = sevenscenes.load_sevenscenes(folder, f"{start}:{nums[i + frames - 1] + 1}", resize=resize)
+    seq = sevenscenes.load_sevenscenes(folder, f"{start}:{nums[i + frames - 1] + 1}", resize=resize,
+                                       colour=CAMERAS[camera])
     if seq.num_frames != frames:
         raise ValueError(f"segment {start}: {seq.num_frames} frames, expected {frames}")
     return priors.priors_for(seq, level, seed=start)
@@ -206,6 +214,9 @@ def main() -> None:
     ap.add_argument("--all-pairs", action="store_true",
                     help="also every pair of segments at least one segment apart: window recall at >= 30 %% "
                          "overlap, false recalls under 10 %%")
+    ap.add_argument("--camera", choices=sorted(CAMERAS), default="folder",
+                    help="folder: the folder's K (the depth camera's) for both images (default); colour: the "
+                         "Kinect colour camera's K and place, the depth registered into it (docs/real_data.md)")
     ap.add_argument("--json", default=None, metavar="PATH")
     args = ap.parse_args()
     folder = Path(args.data)
@@ -224,7 +235,7 @@ def main() -> None:
     if missing:
         raise SystemExit(f"--segments: {missing} are not frames of {folder} (segment starts: {all_starts})")
     t_start = time.perf_counter()
-    seqs = {s: load_segment(folder, s, frames, resize, args.level) for s in sorted({*starts, *pair_starts})}
+    seqs = {s: load_segment(folder, s, frames, resize, args.level, args.camera) for s in sorted({*starts, *pair_starts})}
     H, W = next(iter(seqs.values())).image_size
     cfg = pipeline.config_for(H, W)
     print(f"{folder.name}: {len(starts)} segments x {frames} frames at {W}x{H}, priors '{args.level}'; "

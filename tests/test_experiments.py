@@ -29,7 +29,7 @@ GROUPS = [("camera_pose.py", "reconstruction.py", "video_depth.py", "held_out_wo
            "real_kitchen.py"),
           ("memory_recall.py", "descriptor_3d.py"),
           ("bench_backend.py", "motion_masks.py", "pose_refine.py", "prior_noise.py"),
-          ("bench_icp.py", "long_video.py", "davis_track.py", "bank_concurrency.py")]
+          ("bench_icp.py", "long_video.py", "davis_track.py", "bank_concurrency.py", "sevenscenes_calibration.py")]
 SCRIPTS = sorted(p.name for p in (ROOT / "experiments").glob("*.py")
                  if not p.name.startswith("_") and p.name not in COVERED_ELSEWHERE)
 GROUPED = {s for g in GROUPS for s in g}

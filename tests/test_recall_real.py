@@ -11,7 +11,7 @@ import pytest
 
 from cm3d import memory
 from cm3d.data import priors, sevenscenes
-from cm3d.memory.acceptance import chance_test
+from cm3d.memory.acceptance import chance_test, placement_error
 from cm3d.ops import descriptors, keypoints
 from cm3d.solvers import ransac
 
@@ -98,9 +98,12 @@ def test_real_pair_that_shares_nothing_is_not_recalled(kitchen_visits):
 def test_chance_test_far_beyond_chance_accepts_alone(kitchen_visits):
     """The acceptance model is a fit to one synthetic generator; a pose far beyond chance (log10 NFA
     below ``accept_log_nfa``) is accepted even when the model says no, a pair that shares nothing is
-    not, and neither is a window whose overlap with the map (ICP fitness) is under ``min_overlap``."""
+    not, and neither is a window whose overlap with the map (ICP fitness) is under ``min_overlap`` or
+    whose keypoint inliers fix its pose less well than ``alone_max_placement_error``."""
     seqs, entries = kitchen_visits
-    model_says_no = dataclasses.replace(CFG, accept_bias=-100.0)
+    # (the placement gate open: this revisit's inliers fix its pose to 0.028 rad, just above the default's
+    # 0.026; the gate is checked below)
+    model_says_no = dataclasses.replace(CFG, accept_bias=-100.0, alone_max_placement_error=float("inf"))
     ident = jax.jit(lambda bank, e, k: memory.identify(bank, e, model_says_no, k))
     for (a, b), right in ((REVISIT, True), (DISTINCT, False)):
         out = ident(_bank(entries[a]), entries[b], jax.random.PRNGKey(0))
@@ -116,6 +119,48 @@ def test_chance_test_far_beyond_chance_accepts_alone(kitchen_visits):
     out = jax.jit(lambda bank, e, k: memory.identify(bank, e, no_overlap, k))(_bank(entries[a]), entries[b],
                                                                               jax.random.PRNGKey(0))
     assert int(out.map_id) == -1 and float(out.log_nfa) < CFG.accept_log_nfa
+    # ... and only a pose its inliers fix: asked for a placement error below its own, it is not accepted alone
+    place = float(out.placement_error)
+    assert 0 < place < 0.05
+    vague = dataclasses.replace(model_says_no, alone_max_placement_error=0.9 * place)
+    out = jax.jit(lambda bank, e, k: memory.identify(bank, e, vague, k))(_bank(entries[a]), entries[b],
+                                                                         jax.random.PRNGKey(0))
+    assert int(out.map_id) == -1 and float(out.log_nfa) < CFG.accept_log_nfa
+
+
+def _umeyama(src, dst):
+    """Least-squares similarity dst ~ s R src + t (numpy reference): (R, s)."""
+    ms, md = src.mean(0), dst.mean(0)
+    U, S, Vt = np.linalg.svd((dst - md).T @ (src - ms) / len(src))
+    D = np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    return R, np.trace(np.diag(S) @ D) / np.mean(np.sum((src - ms) ** 2, 1))
+
+
+def test_placement_error_predicts_the_spread_of_a_fitted_similarity():
+    """placement_error (noise over the inliers' spread and count) against Monte Carlo: similarities
+    fitted (Umeyama) to k matches with noise of RMS threshold / 2 vary in rotation (rad, per axis) and log
+    scale by that much (within 25 %); a cluster a quarter as wide is four times as vague; outliers beyond the threshold
+    and padding do not count."""
+    rng = np.random.default_rng(5)
+    thr = 0.1
+    for k, width in ((9, 0.4), (9, 0.1), (40, 1.0)):
+        src = rng.uniform(-width, width, (k, 3))
+        sigma = thr / 2 / np.sqrt(3)  # per axis: RMS thr / 2 in 3D
+        rot, logs = [], []
+        for _ in range(400):
+            R, s = _umeyama(src, src + rng.normal(scale=sigma, size=src.shape))
+            rot.append(np.linalg.norm(np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2))
+            logs.append(np.log(s))
+        mc = max(np.sqrt(np.mean(np.square(rot)) / 3), np.std(logs))  # per axis
+        pad = np.zeros((8, 3))
+        got = float(jax.jit(placement_error)(np.r_[src, src[:3], pad], np.r_[src, src[:3] + 1.0, pad],
+                                             np.r_[np.ones(k + 3, bool), np.zeros(8, bool)], np.eye(4), thr))
+        assert 0.8 < got / mc < 1.25, (k, width, got, mc)
+        if (k, width) == (9, 0.1):
+            assert got > 3.0 * wide
+        wide = got
+    assert np.isinf(float(placement_error(src, src + 1.0, np.ones(len(src), bool), np.eye(4), thr)))
 
 
 def test_chance_test_rejects_ransac_on_shuffled_matches():

@@ -44,6 +44,61 @@ def test_frames_spec_and_resize(kitchen):
     np.testing.assert_allclose(seq.intrinsic[0], [[292.5, 0, 159.75], [0, 292.5, 119.75], [0, 0, 1]])
 
 
+def _plane_depth(K, n, d, shape):
+    """Depth (H, W) of the plane n.x = d seen by a camera with intrinsics K at the origin."""
+    v, u = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    ray = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    return d / (ray @ n)
+
+
+def test_depth_registered_into_a_colour_camera_sees_the_same_surface():
+    """A tilted plane seen by a depth camera (f 585) and a colour camera beside it (f 525, 2.5 cm to
+    the side, turned 1 degree): the registered depth equals the plane's depth in the colour camera
+    (nearest splat: within the depth change across a pixel), lift_colour_pixels lands on the plane, and
+    a colour camera equal to the depth camera gives the depth back unchanged."""
+    shape = (120, 160)
+    Kd = np.array([[146.25, 0, 79.75], [0, 146.25, 59.75], [0, 0, 1.0]])
+    n_d = np.array([0.2, -0.1, 1.0]) / np.linalg.norm([0.2, -0.1, 1.0])
+    depth = _plane_depth(Kd, n_d, 2.0, shape).astype(np.float32)
+    depth[50:60, 70:90] = 0.0  # a hole
+    cam = sevenscenes.ColourCamera(f=131.25, cx=79.5, cy=59.5, rotvec=(0.0, np.radians(1.0), 0.0),
+                                   translation=(-0.025, 0.0, 0.0))
+    T = cam.depth_to_colour()
+    n_c = T[:3, :3] @ n_d  # the plane in colour coordinates: n_c.x = 2 + n_c.t
+    truth = _plane_depth(cam.K(), n_c, 2.0 + n_c @ T[:3, 3], shape)
+    reg = sevenscenes.register_depth(depth, Kd, cam)
+    seen = reg > 0
+    assert 0.7 < seen.mean() < 0.9  # the colour camera's wider view reaches past the depth camera's
+    assert not seen[53:57, 76:84].any()  # the hole stays a hole
+    np.testing.assert_allclose(reg[seen], truth[seen], rtol=0.01)
+    v, u = np.nonzero(seen)
+    X, ok = sevenscenes.lift_colour_pixels(np.c_[u, v], depth, Kd, cam)
+    assert ok.mean() > 0.95
+    np.testing.assert_allclose(X[ok, 2], truth[v[ok], u[ok]], rtol=1e-3)  # bilinear on a plane: exact
+    same = sevenscenes.ColourCamera(f=146.25, cx=79.75, cy=59.75)
+    np.testing.assert_allclose(sevenscenes.register_depth(depth, Kd, same), depth, rtol=1e-6)
+
+
+def test_the_colour_camera_loads_its_k_registered_depth_and_poses(kitchen):
+    seq = sevenscenes.load_sevenscenes(kitchen, "160:162", resize=0.5, colour=sevenscenes.KINECT_COLOUR)
+    plain = sevenscenes.load_sevenscenes(kitchen, "160:162", resize=0.5)
+    np.testing.assert_allclose(seq.intrinsic[0], [[262.5, 0, 159.5], [0, 262.5, 119.5], [0, 0, 1]])
+    np.testing.assert_array_equal(seq.images, plain.images)
+    # the poses are the colour camera's: 2.5 cm along the depth camera's x axis (x_d = x_c - t), same rotation
+    np.testing.assert_allclose(seq.gt.cam_to_world[:, :3, :3], plain.gt.cam_to_world[:, :3, :3])
+    centre = plain.gt.cam_to_world[:, :3, :3] @ [0.025, 0, 0] + plain.gt.cam_to_world[:, :3, 3]
+    np.testing.assert_allclose(seq.gt.cam_to_world[:, :3, 3], centre, atol=1e-9)  # T_wc = T_wd T_cd^-1
+    np.testing.assert_allclose(seq.cam_to_world, seq.gt.cam_to_world)
+    # the colour camera sees wider: its border has no depth, its centre the same surface
+    assert (seq.depth[:, :, :8] == 0).all() and (seq.depth[:, :, -8:] == 0).all()
+    c = (slice(100, 140), slice(140, 180))
+    ratio = np.median(seq.depth[0][c][seq.depth[0][c] > 0]) / np.median(plain.depth[0][c][plain.depth[0][c] > 0])
+    assert 0.97 < ratio < 1.03
+    np.testing.assert_array_equal(seq.depth_conf == 0, seq.depth == 0)
+    assert seq.meta["colour_camera"]["f"] == 525.0
+    io.validate_sequence(seq)
+
+
 def test_priors_from_real_frames_keep_holes(kitchen):
     seq = sevenscenes.load_sevenscenes(kitchen, "160:180", resize=0.25)
     p = priors.priors_for(seq, "moderate", seed=3)

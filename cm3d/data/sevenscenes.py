@@ -10,6 +10,11 @@ The sequence's priors are the sensor's: metric depth with its holes (depth 0, co
 elsewhere) and the poses of the files (identity where there are none). With pose files the
 ground truth is those poses and the sensor depth; VGGT-like priors come from
 :func:`cm3d.data.priors.priors_for` (``cm3d run --prior-noise LEVEL``).
+
+7-Scenes' own K is the Kinect's *depth* camera's and its depth is not registered to the colour
+frames. With ``colour=`` a :class:`ColourCamera` (:data:`KINECT_COLOUR`: fitted on the shared
+redkitchen by ``experiments/sevenscenes_calibration.py``) the sequence is the colour camera's: its
+K, the depth re-projected into it (:func:`register_depth`) and the files' poses moved onto it.
 """
 
 from __future__ import annotations
@@ -19,12 +24,108 @@ from pathlib import Path
 
 import numpy as np
 
+import dataclasses
+
 from cm3d.data.resize import resize_frame
 from cm3d.data.sequence import GroundTruth, Sequence
 
 DEPTH_SCALE = 1000.0  # uint16 millimetres
 INVALID_DEPTH = 65535
 _FRAME = re.compile(r"^frame-(\d+)\.color\.(jpg|png)$")
+
+
+@dataclasses.dataclass(frozen=True)
+class ColourCamera:
+    """A colour camera beside the depth camera: pinhole ``f`` (px, square pixels), centre (``cx``,
+    ``cy``) at the folder's image size, and the rigid map from depth-camera to colour-camera
+    coordinates, ``x_c = R x_d + t`` (``rotvec``: R as a rotation vector, rad; ``translation``: t, m)."""
+
+    f: float
+    cx: float
+    cy: float
+    rotvec: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    translation: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def K(self) -> np.ndarray:
+        return np.array([[self.f, 0.0, self.cx], [0.0, self.f, self.cy], [0.0, 0.0, 1.0]])
+
+    def depth_to_colour(self) -> np.ndarray:
+        """4x4 ``T_cd``: depth-camera coordinates -> colour-camera coordinates."""
+        from scipy.spatial.transform import Rotation
+
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(self.rotvec).as_matrix()
+        T[:3, 3] = self.translation
+        return T
+
+
+#: The Kinect v1 colour camera of 7-Scenes: its published intrinsics (f = 525 px, centre (319.5, 239.5)
+#: at 640x480) and the Kinect's 2.5 cm baseline along the depth camera's x axis (x_c = x_d - 2.5 cm: the
+#: sign the data prefer). Measured by ``experiments/sevenscenes_calibration.py`` on the shared redkitchen
+#: (SIFT matches of colour frames reprojected through the sensor depth and the files' poses; median over
+#: 60 pairs of frames 460-938): 1.81 px, against 2.76 px with the folder's K for both cameras, 1.87 px
+#: with the two cameras at one place, 1.92 px with the opposite sign, and 1.84 px for f, cx, cy fitted on
+#: frames 100-398 at one place.
+KINECT_COLOUR = ColourCamera(f=525.0, cx=319.5, cy=239.5, translation=(-0.025, 0.0, 0.0))
+
+
+def _bilinear_depth(depth: np.ndarray, uv: np.ndarray, max_ratio: float = 1.05):
+    """Depth at sub-pixel ``uv`` (N, 2): bilinear where all four neighbours hold depth within
+    ``max_ratio`` of each other (else invalid: a hole or a depth edge). Returns (z (N,), valid (N,))."""
+    H, W = depth.shape
+    u0, v0 = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+    inside = (u0 >= 0) & (v0 >= 0) & (u0 < W - 1) & (v0 < H - 1)
+    u0c, v0c = np.clip(u0, 0, W - 2), np.clip(v0, 0, H - 2)
+    q = np.stack([depth[v0c, u0c], depth[v0c, u0c + 1], depth[v0c + 1, u0c], depth[v0c + 1, u0c + 1]], 1)
+    a, b = uv[:, 0] - u0c, uv[:, 1] - v0c
+    z = (q[:, 0] * (1 - a) * (1 - b) + q[:, 1] * a * (1 - b) + q[:, 2] * (1 - a) * b + q[:, 3] * a * b)
+    lo, hi = q.min(1), q.max(1)
+    return z, inside & (lo > 0) & (hi <= max_ratio * lo)
+
+
+def lift_colour_pixels(uv, depth, K_depth, cam: ColourCamera, iterations: int = 5):
+    """Colour-camera points (N, 3) of colour pixels ``uv`` (N, 2), their depth read where the depth
+    camera sees each colour ray (a fixed point over the two cameras' baseline; ``depth`` (H, W) the
+    depth camera's, metres, 0 = none). Returns (points, valid (N,))."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    ray = np.c_[(uv[:, 0] - cam.cx) / cam.f, (uv[:, 1] - cam.cy) / cam.f, np.ones(len(uv))]
+    T = cam.depth_to_colour()
+    R, t = T[:3, :3], T[:3, 3]
+    r_d, t_d = ray @ R, R.T @ t  # x_d = R^T (z ray - t) = z r_d - t_d
+    z = np.full(len(uv), 2.0)
+    valid = np.zeros(len(uv), bool)
+    for _ in range(iterations):
+        X = z[:, None] * r_d - t_d
+        front = X[:, 2] > 1e-6
+        pix = (X @ np.asarray(K_depth, np.float64).T)[:, :2] / np.where(front, X[:, 2], 1.0)[:, None]
+        zd, valid = _bilinear_depth(depth, pix)
+        valid &= front
+        z = np.where(valid, (zd + t_d[2]) / r_d[:, 2], z)
+    return z[:, None] * ray, valid
+
+
+def register_depth(depth, K_depth, cam: ColourCamera, shape=None) -> np.ndarray:
+    """The depth camera's ``depth`` (H, W) re-projected into the colour camera (``shape``, default
+    ``depth.shape``): every measured pixel moved to the colour camera and splatted to its nearest
+    pixel, the nearest surface kept where several land (a z-buffer); 0 where none lands."""
+    depth = np.asarray(depth, np.float64)
+    H, W = depth.shape if shape is None else shape
+    v, u = np.nonzero(depth > 0)
+    z = depth[v, u]
+    Kd = np.asarray(K_depth, np.float64)
+    X = np.stack([(u - Kd[0, 2]) * z / Kd[0, 0], (v - Kd[1, 2]) * z / Kd[1, 1], z], 1)
+    T = cam.depth_to_colour()
+    Y = X @ T[:3, :3].T + T[:3, 3]
+    Y = Y[Y[:, 2] > 1e-6]
+    pu = np.rint(cam.f * Y[:, 0] / Y[:, 2] + cam.cx).astype(np.int64)
+    pv = np.rint(cam.f * Y[:, 1] / Y[:, 2] + cam.cy).astype(np.int64)
+    ok = (pu >= 0) & (pu < W) & (pv >= 0) & (pv < H)
+    flat, zc = pv[ok] * W + pu[ok], Y[ok, 2]
+    order = np.lexsort((zc, flat))  # by pixel, nearest first
+    first = np.unique(flat[order], return_index=True)[1]
+    out = np.zeros(H * W, np.float32)
+    out[flat[order][first]] = zc[order][first]
+    return out.reshape(H, W)
 
 
 def is_sevenscenes_folder(folder) -> bool:
@@ -124,17 +225,21 @@ def _color_path(folder: Path, n: int) -> Path:
 
 
 def load_sevenscenes(folder, frames: str | None = None, require_poses: bool = False,
-                     resize: float = 1.0) -> Sequence:
+                     resize: float = 1.0, colour: ColourCamera | None = None) -> Sequence:
     """A 7-Scenes folder (module docstring) as a :class:`Sequence`: sensor depth and confidence
     (0 in holes), the files' poses as the prior (identity without pose files) and, with pose files,
     the ground truth; timestamps are the frame numbers; ``resize`` scales images, depth (nearest)
     and K (``0.5``: 640x480 -> 320x240). ``require_poses``: an error when any selected frame has
-    no pose file (``--prior-noise`` needs them)."""
+    no pose file (``--prior-noise`` needs them). ``colour``: the colour camera (e.g.
+    :data:`KINECT_COLOUR`; None: the folder's K for both images, the depth as it is): its K, the depth
+    registered into it (:func:`register_depth`) and the poses moved onto it (``T_wc = T_wd T_cd^-1``)."""
     import cv2
 
     folder = Path(folder)
     nums = frame_numbers(folder, frames)
-    K = read_intrinsics(folder)
+    K_depth = read_intrinsics(folder)
+    K = K_depth if colour is None else colour.K()
+    T_dc = np.eye(4) if colour is None else np.linalg.inv(colour.depth_to_colour())
     has_pose = [(folder / f"frame-{n:06d}.pose.txt").exists() for n in nums]
     if require_poses and not all(has_pose):
         missing = nums[has_pose.index(False)]
@@ -155,11 +260,13 @@ def load_sevenscenes(folder, frames: str | None = None, require_poses: bool = Fa
                              f"{img.shape[1]}x{img.shape[0]}")
         if not (d > 0).any():
             raise ValueError(f"{dpath}: frame {n} has no usable depth (every pixel is a hole)")
+        if colour is not None:
+            d = register_depth(d, K_depth, colour, img.shape[:2])
         img, d = resize_frame(img, d, resize)
         images.append(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
         depth.append(d)
         pose_path = folder / f"frame-{n:06d}.pose.txt"
-        poses.append(read_pose(pose_path) if pose_path.exists() else np.eye(4))
+        poses.append(read_pose(pose_path) @ T_dc if pose_path.exists() else np.eye(4))
     shapes = {im.shape for im in images}
     if len(shapes) != 1:
         raise ValueError(f"{folder}: images differ in size {sorted(shapes)}")
@@ -172,6 +279,7 @@ def load_sevenscenes(folder, frames: str | None = None, require_poses: bool = Fa
     Ks = np.broadcast_to(K, (S, 3, 3)).copy()
     gt = GroundTruth(cam_to_world=poses.copy(), depth=depth.copy(), intrinsic=Ks.copy()) if all(has_pose) else None
     meta = {"source": "sevenscenes", "folder": str(folder), "frames": [int(n) for n in nums],
-            "prior": "sensor depth, poses of the files" if all(has_pose) else "sensor depth, identity poses"}
+            "prior": "sensor depth, poses of the files" if all(has_pose) else "sensor depth, identity poses",
+            "colour_camera": None if colour is None else dataclasses.asdict(colour)}
     return Sequence(images=images, depth=depth, depth_conf=(depth > 0).astype(np.float32), intrinsic=Ks,
                     cam_to_world=poses, timestamps=np.array(nums, np.float64), gt=gt, meta=meta)

@@ -60,6 +60,25 @@ def chance_test(src, dst, valid, T, threshold, tests, shuffles: int = SHUFFLES):
     return k.astype(jnp.int32), lam, jnp.where(ok, log_nfa, jnp.float32(jnp.log10(tests)))
 
 
+def placement_error(src, dst, valid, T, threshold):
+    """How precisely the keypoint inliers of a pose ``T`` fix it: ``σ / (S √(2k))`` with ``k`` the
+    matches ``src[i] -> dst[i]`` (where ``valid``) within ``threshold`` under ``T``, ``S`` the RMS distance
+    of their map ends from their centroid and ``σ = threshold / 2`` the RMS of their 3D noise: to first
+    order, the standard error of a similarity fitted to them in its rotation about each axis (radians)
+    and in its log scale, for inliers spread evenly about their centroid. Dimensionless, so it means the
+    same on any data; large when few inliers sit close together (they fix the place, not the orientation
+    and scale). Pure, fixed shape (inf without inliers)."""
+    src, dst = jnp.asarray(src, jnp.float32), jnp.asarray(dst, jnp.float32)
+    pred = sim3.apply(jnp.asarray(T, jnp.float32), src)
+    inl = jnp.asarray(valid, bool) & (jnp.sum((pred - dst) ** 2, -1) < jnp.float32(threshold) ** 2)
+    k = jnp.sum(inl)
+    w = inl.astype(jnp.float32)
+    c = jnp.sum(dst * w[:, None], 0) / jnp.maximum(k, 1)
+    spread = jnp.sqrt(jnp.sum(w * jnp.sum((dst - c) ** 2, -1)) / jnp.maximum(k, 1))
+    err = 0.5 * jnp.float32(threshold) / (spread * jnp.sqrt(2.0 * k.astype(jnp.float32)))
+    return jnp.where((k > 0) & (spread > 0) & jnp.all(jnp.isfinite(T)), err, jnp.inf)
+
+
 def chance_tests(cfg: MemoryConfig) -> int:
     """Poses tried per query: every candidate's triangle and upright-pair hypotheses."""
     return cfg.top_k * (cfg.ransac_hypotheses + cfg.upright_hypotheses)

@@ -132,6 +132,12 @@ class MemoryConfig:
     # pose this good by chance in at most 1 % of queries (issue 22's false-accept bar). The model is a fit
     # to one synthetic generator; this test means the same on any data (-inf: the model alone decides)
     accept_log_nfa: float = -2.0
+    # ... provided its keypoint inliers fix the pose: the rotation's / log scale's standard error they imply
+    # (cm3d.memory.acceptance.placement_error: inlier noise over their spread and count) at most this. A few
+    # inliers close together (one corner of the scene) are far beyond chance yet fix the place, not the
+    # orientation and scale (a real kitchen window accepted alone at 19 deg / +40 % scale, stop 49).
+    # 0.026 rad: 1.5 degrees, half issue 22's relocalisation bar (3 degrees), at one standard error; inf: off
+    alone_max_placement_error: float = 0.026
     # a recall is a place the window shares with the map: with "full" verification, at least this share of
     # its ICP points has a map point within icp_distance under the final pose (ICP fitness), whatever the
     # other tests say. Below it the window is a new place that touches a stored one (issue 22: pairs
@@ -172,6 +178,9 @@ class MemoryConfig:
             raise ValueError(f"MemoryConfig.scale_range: need 0 < lo < hi, got {self.scale_range}")
         if not 0 <= self.min_overlap <= 1:
             raise ValueError(f"MemoryConfig.min_overlap: need a share in [0, 1], got {self.min_overlap}")
+        if not self.alone_max_placement_error > 0:
+            raise ValueError(f"MemoryConfig.alone_max_placement_error: need a positive standard error (radians) or "
+                             f"inf (off), got {self.alone_max_placement_error}")
         if np.isnan(self.accept_log_nfa) or self.accept_log_nfa > 0:
             raise ValueError(f"MemoryConfig.accept_log_nfa: need log10 NFA <= 0 (fewer than one false alarm) or "
                              f"-inf (off), got {self.accept_log_nfa}")

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from cm3d.memory.acceptance import (acceptance_features, acceptance_score, chance_test, chance_tests, hard_checks,
-                                    model_accepts)
+                                    model_accepts, placement_error)
 from cm3d.memory.bank import MemoryBank
 from cm3d.memory.config import MemoryConfig
 from cm3d.memory.entry import MapEntry
@@ -32,6 +32,7 @@ class Identification:
     pose_inliers: jax.Array | None = None  # () scored keypoint matches within the RANSAC distance of the final pose
     chance_inliers: jax.Array | None = None  # () ... expected by chance (shuffled matches; chance_test)
     log_nfa: jax.Array | None = None  # () log10 of the chance test's number of false alarms (accept < max_log_nfa)
+    placement_error: jax.Array | None = None  # () how precisely the final pose's keypoint inliers fix it
 
 
 def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Identification:
@@ -47,8 +48,10 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
     **chance test** (:func:`chance_test`: the final pose's keypoint inliers against the count its
     shuffled matches give, log10 NFA below ``cfg.max_log_nfa``), with keypoint verification or more;
     a candidate far beyond chance (log10 NFA below ``cfg.accept_log_nfa``) that passes the hard checks
-    is accepted whatever the model or the thresholds say. With ``"full"`` verification an accepted
-    candidate also overlaps the map: ICP fitness at least ``cfg.min_overlap``.
+    and whose keypoint inliers fix its pose (:func:`placement_error` at most
+    ``cfg.alone_max_placement_error``) is accepted whatever the model or the thresholds say. With
+    ``"full"`` verification an accepted candidate also overlaps the map: ICP fitness at least
+    ``cfg.min_overlap``.
     """
     r = recall(bank, entry.kf_desc, entry.kf_valid, entry.cloud_desc, cfg)
     cand = r.candidates
@@ -72,11 +75,13 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
     # the chance test (3D feature stage, under the final pose): an a-contrario bound on the keypoint inliers
     thr = cfg.ransac_distance * jnp.maximum(bank.voxel_size[jnp.maximum(m, 0)], 1e-12)
     k, lam, log_nfa = chance_test(scored[0][b], scored[1][b], scored[2][b], v.transform, thr, chance_tests(cfg))
-    alone = hard_checks(bank, m, v, cfg) & (log_nfa < cfg.accept_log_nfa)  # far beyond chance: accepted alone
+    place = placement_error(scored[0][b], scored[1][b], scored[2][b], v.transform, thr)
+    # far beyond chance and placed by its inliers (not a small cluster of them): accepted alone
+    alone = hard_checks(bank, m, v, cfg) & (log_nfa < cfg.accept_log_nfa) & (place <= cfg.alone_max_placement_error)
     accepted = (v.accepted & (log_nfa < cfg.max_log_nfa)) | alone
     if cfg.verification == "full":  # the window must share a part of its surface with the map, not touch it
         accepted = accepted & (v.fitness >= cfg.min_overlap)
     v = v.replace(accepted=accepted)
     return Identification(recall=r, candidate_inliers=best, verification=v, map_id=jnp.where(v.accepted, m, -1),
                           candidate=m, features=feats, acceptance=score, pose_inliers=k, chance_inliers=lam,
-                          log_nfa=log_nfa)
+                          log_nfa=log_nfa, placement_error=place)

@@ -26,7 +26,8 @@ class RecallReport:
     its Sim(3) ``transform`` query -> map); the map written (-1 bank full), created; ``placement``:
     the Sim(3) sequence -> map the memory priors and the merge used; the acceptance tests of the
     verified candidate: the model's ``acceptance`` score (accept >= 0; NaN without a model), the chance
-    test's ``pose_inliers`` / ``chance_inliers`` and ``log_nfa`` (accept < ``max_log_nfa``)."""
+    test's ``pose_inliers`` / ``chance_inliers`` and ``log_nfa`` (accept < ``max_log_nfa``), and the
+    ``placement_error`` of the final pose's keypoint inliers."""
 
     candidates: Any
     votes: Any
@@ -46,6 +47,7 @@ class RecallReport:
     pose_inliers: Any = None
     chance_inliers: Any = None
     log_nfa: Any = None
+    placement_error: Any = None
 
     @classmethod
     def empty(cls, top_k: int) -> "RecallReport":
@@ -57,7 +59,7 @@ class RecallReport:
                    map_id=-jnp.ones((), jnp.int32), created=jnp.zeros((), bool),
                    placement=jnp.eye(4, dtype=jnp.float32), acceptance=jnp.full((), jnp.nan, jnp.float32),
                    pose_inliers=jnp.zeros((), jnp.int32), chance_inliers=jnp.zeros((), jnp.float32),
-                   log_nfa=jnp.zeros((), jnp.float32))
+                   log_nfa=jnp.zeros((), jnp.float32), placement_error=jnp.full((), jnp.inf, jnp.float32))
 
 
 @struct.dataclass
@@ -115,7 +117,9 @@ def recall_report(ident: memory.Identification, map_id, transform, created, plac
                     else jnp.asarray(ident.acceptance, jnp.float32)),
         pose_inliers=jnp.asarray(0 if ident.pose_inliers is None else ident.pose_inliers, jnp.int32),
         chance_inliers=jnp.asarray(0.0 if ident.chance_inliers is None else ident.chance_inliers, jnp.float32),
-        log_nfa=jnp.asarray(0.0 if ident.log_nfa is None else ident.log_nfa, jnp.float32))
+        log_nfa=jnp.asarray(0.0 if ident.log_nfa is None else ident.log_nfa, jnp.float32),
+        placement_error=jnp.asarray(jnp.inf if ident.placement_error is None else ident.placement_error,
+                                    jnp.float32))
 
 
 def memory_surface(bank: memory.MemoryBank, map_id, transform, d_scene) -> trajectory.MemorySurface:

@@ -70,6 +70,7 @@ class WindowRecord:
     pose_inliers: int = 0  # the chance test: keypoint inliers of the final pose ...
     chance_inliers: float = 0.0  # ... expected by chance (shuffled matches) ...
     log_nfa: float = 0.0  # ... log10 false alarms (accept < MemoryConfig.max_log_nfa)
+    placement_error: float = float("inf")  # how precisely those inliers fix the pose (memory.placement_error)
     decision: str = ""  # which test accepted / rejected the verified candidate, and by how much
     photo_free: float = float("nan")  # grey error (levels) of the window's static pixels: memory-free poses ...
     photo_memory: float = float("nan")  # ... and the memory solution's (used only when lower by more than the tie)
@@ -94,8 +95,8 @@ class WindowRecord:
             inconsistent_tracks=int(w.inconsistent), observations=int(w.observations), inliers=int(w.inliers),
             lm_iterations=int(w.iterations), lm_cost=float(w.cost), acceptance=float(r.acceptance),
             pose_inliers=int(r.pose_inliers), chance_inliers=float(r.chance_inliers), log_nfa=float(r.log_nfa),
-            decision=memory_decision(r, memory_on), photo_free=float(w.photo_free),
-            photo_memory=float(w.photo_memory))
+            placement_error=float(r.placement_error), decision=memory_decision(r, memory_on),
+            photo_free=float(w.photo_free), photo_memory=float(w.photo_memory))
 
     def to_json(self) -> dict:
         """A JSON-ready dict (lists, Python numbers; transforms rounded to 6 decimals); ``chunk`` only
