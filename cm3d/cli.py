@@ -117,10 +117,12 @@ def _holds_chunks(path) -> bool:
         return "chunk.npy" in z.namelist()
 
 
-def _load_inputs(paths, frames=None, prior_noise=None, seed=0):
+def _load_inputs(paths, frames=None, prior_noise=None, seed=0, camera="folder"):
     """(one sequence, None), or (None, chunks) for several paths or one file with a ``chunk`` key:
     the overlapping chunks of one long video (a file holding a single chunk is one sequence).
-    ``frames``: 7-Scenes frame selection; ``prior_noise``: VGGT-like priors from the ground truth."""
+    ``frames``: 7-Scenes frame selection; ``prior_noise``: VGGT-like priors from the ground truth;
+    ``camera``: 7-Scenes folders, "folder" (the folder's K for both images) or "kinect" (the Kinect
+    colour camera, :data:`cm3d.data.sevenscenes.KINECT_COLOUR`)."""
     from cm3d.data.loaders import load_input
     from cm3d.data.quality import check_runnable
 
@@ -129,9 +131,12 @@ def _load_inputs(paths, frames=None, prior_noise=None, seed=0):
 
         kwargs = {}
         if is_sevenscenes_folder(paths[0]):
-            kwargs = {"frames": frames, "require_poses": prior_noise is not None}
-        elif frames is not None:
-            raise ValueError("--frames: only for 7-Scenes folders")
+            from cm3d.data.sevenscenes import KINECT_COLOUR
+
+            kwargs = {"frames": frames, "require_poses": prior_noise is not None,
+                      "colour": KINECT_COLOUR if camera == "kinect" else None}
+        elif frames is not None or camera != "folder":
+            raise ValueError("--frames / --colour-camera: only for 7-Scenes folders")
         seq = load_input(paths[0], **kwargs)
         check_runnable(seq, str(paths[0]))
         if prior_noise is not None:
@@ -139,8 +144,8 @@ def _load_inputs(paths, frames=None, prior_noise=None, seed=0):
 
             seq = priors_for(seq, prior_noise, seed)
         return seq, None
-    if frames is not None or prior_noise is not None:
-        raise ValueError("--frames / --prior-noise: for a single input")
+    if frames is not None or prior_noise is not None or camera != "folder":
+        raise ValueError("--frames / --prior-noise / --colour-camera: for a single input")
     from cm3d import long_video as stitch
 
     chunks = stitch.load_chunks(paths)
@@ -194,7 +199,7 @@ def _run(args) -> int:
     bank, mem_cfg = snap.bank, snap.cfg
     if snap.note:
         print(f"note: {snap.note}")
-    seq, chunks = _load_inputs(args.inputs, args.frames, args.prior_noise, args.seed)
+    seq, chunks = _load_inputs(args.inputs, args.frames, args.prior_noise, args.seed, args.colour_camera)
     H, W = (seq if seq is not None else chunks[0]).image_size
     changes = {"use_memory": not args.no_memory}
     if args.keyframe_interval is not None:
@@ -358,6 +363,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--prior-noise", default=None, metavar="LEVEL", choices=("none", "slight", "moderate", "severe"),
                    help="VGGT-like priors made from the input's ground truth (poses, depth) at this level")
     r.add_argument("--seed", type=int, default=0, help="seed of --prior-noise")
+    r.add_argument("--colour-camera", choices=("folder", "kinect"), default="folder",
+                   help="7-Scenes folders: the folder's K for both images (default), or the Kinect colour camera "
+                        "(published K, 2.5 cm baseline; the depth registered into it; docs/real_data.md)")
     r.add_argument("--no-pictures", action="store_true", help="skip the PNG pictures")
     r.add_argument("--quiet", action="store_true", help="no progress bars")
     r.add_argument("--rerun", default=None, metavar="RRD", help="also write a Rerun recording of every stage "

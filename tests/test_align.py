@@ -16,7 +16,7 @@ from cm3d.solvers import align
 from cm3d.solvers.align import GlobalOptions, fpfh, global_registration, ransac, umeyama_transform
 from cm3d.solvers.icp import ICPOptions, icp
 
-N, R_MAX, L = 3000, 0.3, 16384  # ICP clouds and radius as tests/test_icp.py (shared compilations)
+N, R_MAX, L = 3000, 0.3, 8192  # ICP clouds and radius as tests/test_icp.py (shared compilations)
 P2L = ICPOptions(max_correspondence_distance=R_MAX, max_iterations=100)
 SIM_P2L = ICPOptions(with_scale=True, kernel="tukey", kernel_scale=0.1, max_correspondence_distance=R_MAX,
                      max_iterations=100)

@@ -198,3 +198,15 @@ def test_load_input_dispatches_sevenscenes(kitchen):
 
     seq = load_input(kitchen, frames="160:170:2", require_poses=True)
     assert seq.meta["source"] == "sevenscenes" and seq.meta["frames"] == [160, 164, 168]
+
+
+def test_cli_reads_a_sevenscenes_folder_with_the_colour_camera(kitchen, tmp_path, capsys):
+    from cm3d import cli
+
+    seq, _ = cli._load_inputs([kitchen], "160:164", camera="kinect")
+    np.testing.assert_allclose(seq.intrinsic[0], sevenscenes.KINECT_COLOUR.K())
+    assert tuple(seq.meta["colour_camera"]["translation"]) == (-0.025, 0.0, 0.0)
+    npz = tmp_path / "seq.npz"
+    io.save_sequence(npz, seq)
+    rc, err = _cli_error(["run", str(npz), "--out", str(tmp_path / "o"), "--colour-camera", "kinect"], capsys)
+    assert rc == 2 and len(err.splitlines()) == 1 and "only for 7-Scenes folders" in err
