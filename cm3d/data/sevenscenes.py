@@ -12,19 +12,19 @@ ground truth is those poses and the sensor depth; VGGT-like priors come from
 :func:`cm3d.data.priors.priors_for` (``cm3d run --prior-noise LEVEL``).
 
 7-Scenes' own K is the Kinect's *depth* camera's and its depth is not registered to the colour
-frames. With ``colour=`` a :class:`ColourCamera` (:data:`KINECT_COLOUR`: fitted on the shared
-redkitchen by ``experiments/sevenscenes_calibration.py``) the sequence is the colour camera's: its
-K, the depth re-projected into it (:func:`register_depth`) and the files' poses moved onto it.
+frames. With ``colour=`` a :class:`ColourCamera` (:data:`KINECT_COLOUR`: the Kinect colour camera's
+published K and baseline, measured on the shared redkitchen by ``experiments/sevenscenes_calibration.py``)
+the sequence is the colour camera's: its K, the depth re-projected into it (:func:`register_depth`)
+and the files' poses moved onto it.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from pathlib import Path
 
 import numpy as np
-
-import dataclasses
 
 from cm3d.data.resize import resize_frame
 from cm3d.data.sequence import GroundTruth, Sequence

@@ -128,8 +128,9 @@ def memory_decision(r, memory_on: bool) -> str:
         tests.append(f"model {'pass' if score >= 0 else 'FAIL'}: score {score:+.2f} (accept >= 0)")
     alone = bool(r.accepted) and np.isfinite(score) and score < 0
     tests.append(f"chance test{' PASS alone' if alone else ''}: {int(r.pose_inliers)} keypoint inliers vs "
-                 f"{float(r.chance_inliers):.2f} by chance, log10 NFA {nfa:+.1f} (accepts alone below "
-                 f"MemoryConfig.accept_log_nfa, gates below max_log_nfa)")
+                 f"{float(r.chance_inliers):.2f} by chance, log10 NFA {nfa:+.1f}, placement error "
+                 f"{float(r.placement_error):.3f} rad (accepts alone below MemoryConfig.accept_log_nfa with a "
+                 f"placement error at most alone_max_placement_error, gates below max_log_nfa)")
     if not bool(r.accepted) and not (np.isfinite(score) and score < 0):
         tests.append(f"another check FAIL (chance test, overlap, scale or transform): overlap {float(r.fitness):.2f} "
                      f"(MemoryConfig.min_overlap), scale {float(r.scale):.3f}")
