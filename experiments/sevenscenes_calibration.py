@@ -157,8 +157,8 @@ def main() -> None:
               f"{mr:13.2f} {100 * wr:4.0f}%")
     print(f"\nfitted: ColourCamera(f={fit.f:.1f}, cx={fit.cx:.1f}, cy={fit.cy:.1f})")
     print(f"wall {time.perf_counter() - t0:.0f} s")
-    figures |= {"f": fit.f, "cx": fit.cx, "cy": fit.cy,
-                "matches_tune": int(sum(len(d[4]) for d in tune)), "matches_report": int(sum(len(d[4]) for d in report))}
+    figures |= {"f": fit.f, "cx": fit.cx, "cy": fit.cy, "matches_tune": int(sum(len(d[4]) for d in tune)),
+                "matches_report": int(sum(len(d[4]) for d in report))}
     if args.json:
         write_json(args.json, figures)
 

@@ -139,9 +139,9 @@ def _umeyama(src, dst):
 
 def test_placement_error_predicts_the_spread_of_a_fitted_similarity():
     """placement_error (noise over the inliers' spread and count) against Monte Carlo: similarities
-    fitted (Umeyama) to k matches with noise of RMS threshold / 2 vary in rotation (rad, per axis) and log
-    scale by that much (within 25 %); a cluster a quarter as wide is four times as vague; outliers beyond the threshold
-    and padding do not count."""
+    fitted (Umeyama) to k matches with noise of RMS threshold / 2 vary in rotation (rad, per axis) and
+    log scale by that much (within 25 %); a cluster a quarter as wide is four times as vague; outliers
+    beyond the threshold and padding do not count."""
     rng = np.random.default_rng(5)
     thr = 0.1
     for k, width in ((9, 0.4), (9, 0.1), (40, 1.0)):
