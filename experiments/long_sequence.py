@@ -57,22 +57,21 @@ SEGMENT = 40
 KITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "sevenscenes_redkitchen"
 
 
-KITCHEN_CAMERA = "folder"  # --kitchen-camera: "folder" (the folder's one K) or "colour" (the Kinect colour camera)
-
-
-def kitchen(resize: float):
+def kitchen(resize: float, camera: str = "folder"):
     """Every frame of the shared 7-Scenes redkitchen (390: every 2nd of 100-398 and 460-938, so one
-    jump of 62 frames) at ``resize``, with ground truth, seen by :data:`KITCHEN_CAMERA`."""
+    jump of 62 frames) at ``resize``, with ground truth, seen by ``camera``: "folder" (the folder's one K)
+    or "colour" (the Kinect colour camera, :data:`cm3d.data.sevenscenes.KINECT_COLOUR`)."""
     from cm3d.data import sevenscenes
 
     folder = Path(os.environ.get("CM3D_SHARED_DATA", KITCHEN.parent)) / KITCHEN.name
-    colour = sevenscenes.KINECT_COLOUR if KITCHEN_CAMERA == "colour" else None
+    colour = sevenscenes.KINECT_COLOUR if camera == "colour" else None
     return sevenscenes.load_sevenscenes(folder, resize=resize, colour=colour)
 
 
-def make_world(name: str, frames: int, height: int, width: int, level: str, resize: float = 0.5):
+def make_world(name: str, frames: int, height: int, width: int, level: str, resize: float = 0.5,
+               camera: str = "folder"):
     if name == "kitchen":
-        return priors.priors_for(kitchen(resize), level, seed=0)  # all its frames, whatever --frames
+        return priors.priors_for(kitchen(resize, camera), level, seed=0)  # all its frames, whatever --frames
     if name == "own":
         cfg = synthetic.WorldConfig(height=height, width=width)
         return synthetic.generate(0, 0, frames, level, cfg)
@@ -81,11 +80,11 @@ def make_world(name: str, frames: int, height: int, width: int, level: str, resi
     raise ValueError(f"unknown world {name!r}")
 
 
-def render(name: str, frames: int, height: int, width: int, resize: float = 0.5):
+def render(name: str, frames: int, height: int, width: int, resize: float = 0.5, camera: str = "folder"):
     """(images, ground truth, timestamps) of visit 0 of the world's scene 0 (one render for both
     uses); the kitchen: its frames (all of them)."""
     if name == "kitchen":
-        seq = kitchen(resize)
+        seq = kitchen(resize, camera)
         return np.asarray(seq.images), seq.gt, np.asarray(seq.timestamps, np.float64)
     if name == "own":
         cfg = synthetic.WorldConfig(height=height, width=width)
@@ -99,7 +98,7 @@ def run_chunked(name: str, args) -> tuple[dict, list]:
     from cm3d import long_video
 
     n = args.chunk + (args.chunks - 1) * (args.chunk - args.overlap)
-    images, gt, ts = render(name, n, args.height, args.width, args.resize)
+    images, gt, ts = render(name, n, args.height, args.width, args.resize, args.kitchen_camera)
     n = len(images)  # the kitchen: all its frames
     ranges = synthetic.chunk_ranges(n, args.chunk, args.overlap)
     chunks = priors.segment_priors(images, gt, ranges, args.level, seed=1, timestamps=ts)
@@ -144,7 +143,7 @@ def trajectory_figures(seq, P, segment: int) -> dict:
 
 
 def run_world(name: str, args) -> tuple[dict, list]:
-    seq = make_world(name, args.frames, args.height, args.width, args.level, args.resize)
+    seq = make_world(name, args.frames, args.height, args.width, args.level, args.resize, args.kitchen_camera)
     H, W = seq.image_size
     out, rows = {}, []
     prior = trajectory_figures(seq, np.asarray(seq.cam_to_world, np.float64), args.segment)
@@ -187,7 +186,6 @@ def format_table(rows, segment: int) -> str:
 
 
 def main() -> None:
-    global KITCHEN_CAMERA
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=120)
     ap.add_argument("--height", type=int, default=288)
@@ -200,12 +198,11 @@ def main() -> None:
     ap.add_argument("--chunk", type=int, default=40)
     ap.add_argument("--overlap", type=int, default=10)
     ap.add_argument("--quick", action="store_true", help="30 frames at 48x64, own world only; 2 chunks of 8")
-    ap.add_argument("--kitchen-camera", choices=("colour", "folder"), default=KITCHEN_CAMERA,
+    ap.add_argument("--kitchen-camera", choices=("colour", "folder"), default="folder",
                     help="folder: the folder's K (the depth camera's) for both images (default); colour: the "
                          "Kinect colour camera's K and place, the depth registered into it (docs/real_data.md)")
     ap.add_argument("--json", default=None, metavar="PATH")
     args = ap.parse_args()
-    KITCHEN_CAMERA = args.kitchen_camera
     worlds = [w for w in args.worlds.split(",") if w]
     if args.quick:
         args.frames, args.height, args.width, args.segment = 30, 48, 64, 10

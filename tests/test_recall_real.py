@@ -14,6 +14,7 @@ from cm3d.data import priors, sevenscenes
 from cm3d.memory.acceptance import chance_test, placement_error
 from cm3d.ops import descriptors, keypoints
 from cm3d.solvers import ransac
+from cm3d.solvers.umeyama import umeyama
 
 # the product configuration with a small bank's capacities (memory.with_capacities: nothing else differs)
 CFG = memory.with_capacities(max_maps=2, max_points=2048, max_keyframes=8, max_keypoints=256)
@@ -128,15 +129,6 @@ def test_chance_test_far_beyond_chance_accepts_alone(kitchen_visits):
     assert int(out.map_id) == -1 and float(out.log_nfa) < CFG.accept_log_nfa
 
 
-def _umeyama(src, dst):
-    """Least-squares similarity dst ~ s R src + t (numpy reference): (R, s)."""
-    ms, md = src.mean(0), dst.mean(0)
-    U, S, Vt = np.linalg.svd((dst - md).T @ (src - ms) / len(src))
-    D = np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))])
-    R = U @ D @ Vt
-    return R, np.trace(np.diag(S) @ D) / np.mean(np.sum((src - ms) ** 2, 1))
-
-
 def test_placement_error_predicts_the_spread_of_a_fitted_similarity():
     """placement_error (noise over the inliers' spread and count) against Monte Carlo: similarities
     fitted (Umeyama) to k matches with noise of RMS threshold / 2 vary in rotation (rad, per axis) and
@@ -149,7 +141,7 @@ def test_placement_error_predicts_the_spread_of_a_fitted_similarity():
         sigma = thr / 2 / np.sqrt(3)  # per axis: RMS thr / 2 in 3D
         rot, logs = [], []
         for _ in range(400):
-            R, s = _umeyama(src, src + rng.normal(scale=sigma, size=src.shape))
+            s, R, _ = umeyama(src, src + rng.normal(scale=sigma, size=src.shape))  # NumPy in, NumPy fit
             rot.append(np.linalg.norm(np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2))
             logs.append(np.log(s))
         mc = max(np.sqrt(np.mean(np.square(rot)) / 3), np.std(logs))  # per axis

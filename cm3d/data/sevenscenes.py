@@ -28,6 +28,7 @@ import numpy as np
 
 from cm3d.data.resize import resize_frame
 from cm3d.data.sequence import GroundTruth, Sequence
+from cm3d.ops import camera
 
 DEPTH_SCALE = 1000.0  # uint16 millimetres
 INVALID_DEPTH = 65535
@@ -88,7 +89,7 @@ def lift_colour_pixels(uv, depth, K_depth, cam: ColourCamera, iterations: int = 
     camera sees each colour ray (a fixed point over the two cameras' baseline; ``depth`` (H, W) the
     depth camera's, metres, 0 = none). Returns (points, valid (N,))."""
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
-    ray = np.c_[(uv[:, 0] - cam.cx) / cam.f, (uv[:, 1] - cam.cy) / cam.f, np.ones(len(uv))]
+    ray = camera.rays(uv, cam.K())
     T = cam.depth_to_colour()
     R, t = T[:3, :3], T[:3, 3]
     r_d, t_d = ray @ R, R.T @ t  # x_d = R^T (z ray - t) = z r_d - t_d
@@ -111,11 +112,8 @@ def register_depth(depth, K_depth, cam: ColourCamera, shape=None) -> np.ndarray:
     depth = np.asarray(depth, np.float64)
     H, W = depth.shape if shape is None else shape
     v, u = np.nonzero(depth > 0)
-    z = depth[v, u]
-    Kd = np.asarray(K_depth, np.float64)
-    X = np.stack([(u - Kd[0, 2]) * z / Kd[0, 0], (v - Kd[1, 2]) * z / Kd[1, 1], z], 1)
-    T = cam.depth_to_colour()
-    Y = X @ T[:3, :3].T + T[:3, 3]
+    Y = camera.backproject(np.stack([u, v], 1).astype(np.float64), depth[v, u], np.asarray(K_depth, np.float64),
+                           cam.depth_to_colour())  # depth camera -> colour camera coordinates
     Y = Y[Y[:, 2] > 1e-6]
     pu = np.rint(cam.f * Y[:, 0] / Y[:, 2] + cam.cx).astype(np.int64)
     pv = np.rint(cam.f * Y[:, 1] / Y[:, 2] + cam.cy).astype(np.int64)
