@@ -201,7 +201,7 @@ def _run(args) -> int:
         print(f"note: {snap.note}")
     seq, chunks = _load_inputs(args.inputs, args.frames, args.prior_noise, args.seed, args.colour_camera)
     H, W = (seq if seq is not None else chunks[0]).image_size
-    changes = {"use_memory": not args.no_memory}
+    changes = {"use_memory": not args.no_memory, "refine_masks": not args.cue_masks}
     if args.keyframe_interval is not None:
         changes["keyframe_interval"] = args.keyframe_interval
     if args.stride is not None:
@@ -367,6 +367,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="7-Scenes folders: the folder's K for both images (default), or the Kinect colour camera "
                         "(published K, 2.5 cm baseline; the depth registered into it; docs/real_data.md)")
     r.add_argument("--no-pictures", action="store_true", help="skip the PNG pictures")
+    r.add_argument("--cue-masks", action="store_true",
+                   help="write the motion cue's masks as they are (default: refined and tracked by GrabCut)")
     r.add_argument("--quiet", action="store_true", help="no progress bars")
     r.add_argument("--rerun", default=None, metavar="RRD", help="also write a Rerun recording of every stage "
                    "(needs the viz extra: pip install -e '.[viz]'); open it with cm3d view RRD")

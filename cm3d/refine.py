@@ -301,3 +301,26 @@ def refine_and_track(images: np.ndarray, flows: np.ndarray, candidates: np.ndarr
         masks[t] = refined
         prev = refined
     return masks, detected
+
+
+def refine_sequence(images: np.ndarray, flows: np.ndarray, masks: np.ndarray, refiner: MaskRefiner | None = None,
+                    cfg: TrackConfig = TrackConfig()) -> np.ndarray:
+    """The motion cue's dynamic masks (S, H, W) bool of a sequence, refined and tracked
+    (:func:`refine_and_track` with the masks as both the candidates and the detections).
+
+    images (S, H, W, 3) uint8; flows (>= S-1, H, W, 2), flow t -> t+1 for t < S-1. A frame whose cue
+    found nothing stays empty (a tracked mask needs the cue's support within ``cfg.support_px``), so a
+    static scene's empty masks stay empty. Returns (S, H, W) bool.
+    """
+    masks = np.asarray(masks, bool)
+    S = len(masks)
+    if S == 0 or not masks.any():
+        return masks.copy()
+    flows = np.asarray(flows)
+    if len(flows) < S - 1 or flows.shape[1:3] != masks.shape[1:] or images.shape[1:3] != masks.shape[1:]:
+        raise ValueError(f"refine_sequence: images {images.shape}, flows {flows.shape} and masks {masks.shape} "
+                         "must share (H, W), with a flow for each frame but the last")
+    # refine_and_track reads flows[t - 1] for t >= 1 only: frame S-1's slot is never used
+    flows = np.concatenate([flows[:S - 1], np.zeros((1,) + flows.shape[1:], flows.dtype)])
+    out, _ = refine_and_track(images, flows, masks, lambda t: masks[t], refiner, cfg=cfg)
+    return out

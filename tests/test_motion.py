@@ -263,6 +263,25 @@ def test_refine_and_track_follows_a_moving_object():
     assert calls == [0, 2] and detected.tolist() == [True, False, True]
 
 
+def test_refine_sequence_snaps_the_cue_masks_and_keeps_empty_frames_empty():
+    img0, disk = _disk_scene()
+    shift = 4
+    images = np.stack([np.roll(img0, shift * t, axis=1) for t in range(4)])
+    flows = np.broadcast_to(np.array([shift, 0.0], np.float32), (4,) + disk.shape + (2,)).copy()
+    truth = np.stack([np.roll(disk, shift * t, axis=1) for t in range(4)])
+    coarse = np.stack([refine._dilate(truth[t], 4) for t in range(4)])
+    coarse[3] = False  # the cue found nothing in the last frame
+    g = refine.GrabCutRefiner(reference_width=100)
+    out = refine.refine_sequence(images, flows[:3], coarse, g)
+    iou = lambda a, b: (a & b).sum() / (a | b).sum()  # noqa: E731
+    for t in range(3):
+        assert iou(out[t], truth[t]) > 0.9 > iou(coarse[t], truth[t])
+    assert not out[3].any()
+    assert not refine.refine_sequence(images, flows, np.zeros_like(coarse), g).any()  # a static scene
+    with pytest.raises(ValueError, match="flows"):
+        refine.refine_sequence(images, flows[:, :10], coarse, g)
+
+
 def _track_problem(seed=0):
     """Landmark tracks (2 seeding blocks at frames 0 and 2, 4 observations each) of a static scene
     seen by 6 cameras with exact poses, lifted with per-frame perturbed prior poses; block 1 also

@@ -47,8 +47,10 @@ class PipelineConfig:
     robin over an 8 x 8 image grid: a revisit then finds keypoints on the weakly textured walls a first
     visit saw, docs/memory.md, stop 44; the motion cue's matches only among keypoints that pass OpenCV's
     default 0.04, as before: the same matches at a sixth of the matching cost); global_graph: the pose
-    graph over every frame after the windows (:mod:`cm3d.pipeline.global_graph`, host side); seed: the
-    RANSAC key.
+    graph over every frame after the windows (:mod:`cm3d.pipeline.global_graph`, host side);
+    refine_masks: the output masks are the motion cue's masks refined and tracked over the sequence
+    (:func:`cm3d.refine.refine_sequence`, GrabCut, host side, after the back end: the landmarks and
+    the memory use the cue's masks); seed: the RANSAC key.
 
     ``batching="native"``: the LM's sequential ``custom_vmap`` rule fails inside ``scan`` + ``cond``."""
 
@@ -75,6 +77,7 @@ class PipelineConfig:
     keypoints: KeypointConfig = KeypointConfig(max_matches=256, contrast_threshold=0.01, spread_cells=8,
                                                match_contrast=0.04)
     global_graph: GlobalGraphConfig = GlobalGraphConfig()
+    refine_masks: bool = True
     seed: int = 0
 
     def __post_init__(self):

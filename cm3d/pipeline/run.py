@@ -196,6 +196,19 @@ def collect(outputs: StepOutputs, sequence, cfg: PipelineConfig = PipelineConfig
                           windows=windows, sequence=sequence)
 
 
+def refined_masks(inputs: Inputs, outputs: StepOutputs, sequence, cfg: PipelineConfig) -> np.ndarray:
+    """The cue's masks of one sequence refined and tracked (:func:`cm3d.refine.refine_sequence`) at the
+    back end's resolution, from the host :class:`Inputs` (images, flows t -> t+1) and the step outputs;
+    upsampled to the input's (S, H, W) like :func:`collect`'s."""
+    from cm3d import refine
+
+    S, H, W = sequence.depth.shape
+    m = refine.refine_sequence(np.asarray(inputs.frame.image[:S]), np.asarray(inputs.flow[:S]),
+                               np.asarray(outputs.mask[:S], bool))
+    s = cfg.stride
+    return np.repeat(np.repeat(m, s, axis=1), s, axis=2)[:, :H, :W]
+
+
 def prior_result(seq, q: quality.InputQuality) -> SequenceResult:
     """The result of a sequence the back end did not run (degenerate input): the prior poses, no
     dynamic pixel, no window; its report carries the reasons."""
@@ -332,6 +345,8 @@ def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBa
         if progress is not None:
             progress(f"visit {i}: back end", 1, 1)
         res = collect(out, seq, cfg)
+        if cfg.refine_masks:
+            res.masks = refined_masks(host_inputs, out, seq, cfg)
         # one pose graph over every frame: the windows' refined motions and the priors (issue 26)
         res.chained = res.poses.copy()
         res.poses, res.global_graph = global_refine(res.prior, res.chained, [w.frames for w in res.windows],
