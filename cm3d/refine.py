@@ -228,6 +228,24 @@ def background_movers(mask: np.ndarray, flow: np.ndarray, k: float = 3.0, max_sa
     return out
 
 
+def warp_mask(mask: np.ndarray, flow: np.ndarray) -> np.ndarray:
+    """Forward-warp a mask (H, W) of frame t to frame t+1 with the flow (H, W, 2): every set pixel is
+    splatted to its rounded target (half to even) and the splat holes are closed (3x3 closing). The
+    NumPy / OpenCV twin of :func:`cm3d.motion.warp_mask` (bitwise equal), with no program to compile."""
+    import cv2
+
+    mask = np.asarray(mask, bool)
+    H, W = mask.shape
+    v, u = np.nonzero(mask)
+    f = np.asarray(flow, np.float32)[v, u]
+    tu = np.round(u.astype(np.float32) + f[:, 0])
+    tv = np.round(v.astype(np.float32) + f[:, 1])
+    ok = (tu >= 0) & (tu < W) & (tv >= 0) & (tv < H)
+    out = np.zeros((H, W), np.uint8)
+    out[tv[ok].astype(np.intp), tu[ok].astype(np.intp)] = 1
+    return cv2.morphologyEx(out, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)).astype(bool)
+
+
 def new_motion(candidates: np.ndarray, tracked: np.ndarray, cfg: TrackConfig = TrackConfig()) -> np.ndarray:
     """Candidate regions (H, W) bool that the tracked mask does not explain: 8-connected regions of
     at least ``new_region_frac`` of the frame, less than ``new_region_overlap`` covered by it."""
@@ -266,8 +284,6 @@ def refine_and_track(images: np.ndarray, flows: np.ndarray, candidates: np.ndarr
     returns frame t's detection mask (called only when needed); depth / residual: optional hints.
     Returns (masks (T, H, W) bool, detected (T,) bool).
     """
-    from cm3d.motion import warp_mask
-
     refiner = refiner or GrabCutRefiner()
     T = len(flows)
     H, W = candidates.shape[1:]
@@ -281,10 +297,10 @@ def refine_and_track(images: np.ndarray, flows: np.ndarray, candidates: np.ndarr
             seed_mask = np.asarray(detect(t), bool)
             detected[t] = True
         else:
-            warped = np.asarray(warp_mask(prev, flows[t - 1]))
+            warped = warp_mask(prev, flows[t - 1])
             if cfg.motion_split:
                 movers = background_movers(prev, flows[t - 1], cfg.motion_k, seed=cfg.seed + t)
-                uncertain = np.asarray(warp_mask(movers, flows[t - 1])) if movers.any() else None
+                uncertain = warp_mask(movers, flows[t - 1]) if movers.any() else None
             tracked = warped & _dilate(cand, cfg.support_px)
             if cfg.grow:
                 tracked = tracked | overlapping(cand, tracked)
