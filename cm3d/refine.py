@@ -328,7 +328,7 @@ def refine_sequence(images: np.ndarray, flows: np.ndarray, masks: np.ndarray, re
     found nothing stays empty (a tracked mask needs the cue's support within ``cfg.support_px``), so a
     static scene's empty masks stay empty. Returns (S, H, W) bool.
     """
-    masks = np.asarray(masks, bool)
+    masks, images = np.asarray(masks, bool), np.asarray(images)
     S = len(masks)
     if S == 0 or not masks.any():
         return masks.copy()
