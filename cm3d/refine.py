@@ -91,6 +91,10 @@ class GrabCutRefiner:
     Definite foreground around the prompts and in the coarse mask eroded by ``core_px``; probable
     foreground in the rest of it; probable background in a ``band_px`` ring; definite background
     elsewhere. Pixel sizes are for ``reference_width`` wide images and scale with the width.
+    GrabCut runs on a window around each group of seed regions (:func:`context_boxes`: the region's
+    box grown by ``context`` times its size on every side, overlapping windows merged), so the
+    background colour model is the region's surroundings and the cost follows the regions' size,
+    not the frame's; ``context=None``: the whole frame for all regions at once.
     """
 
     iterations: int = 3
@@ -98,6 +102,7 @@ class GrabCutRefiner:
     core_px: int = 14
     prompt_radius: int = 3
     reference_width: int = 512
+    context: float | None = 1.0
 
     def __call__(self, image, coarse, prompts, region_ids, hints: RefineHints = RefineHints()):
         import cv2
@@ -117,13 +122,52 @@ class GrabCutRefiner:
             cv2.circle(m, (int(u), int(v)), px(self.prompt_radius), int(cv2.GC_FGD), -1)
         if not ((m == cv2.GC_BGD) | (m == cv2.GC_PR_BGD)).any():
             return coarse.copy()  # nothing to contrast against: the whole frame is foreground
-        img = np.ascontiguousarray(image)
-        bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
-        try:
-            cv2.grabCut(img, m, None, bgd, fgd, self.iterations, cv2.GC_INIT_WITH_MASK)
-        except cv2.error:
-            return coarse.copy()  # degenerate colour models (e.g. a flat image): keep the seed
-        return (m == cv2.GC_FGD) | (m == cv2.GC_PR_FGD)
+        H = coarse.shape[0]
+        boxes = [(0, H, 0, W)] if self.context is None else context_boxes(m != cv2.GC_BGD, self.context)
+        out = np.zeros_like(coarse)
+        for r0, r1, c0, c1 in boxes:
+            mb = np.ascontiguousarray(m[r0:r1, c0:c1])
+            if not ((mb == cv2.GC_BGD) | (mb == cv2.GC_PR_BGD)).any() or not (mb != cv2.GC_BGD).any():
+                out[r0:r1, c0:c1] |= coarse[r0:r1, c0:c1]
+                continue
+            bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+            try:
+                cv2.grabCut(np.ascontiguousarray(image[r0:r1, c0:c1]), mb, None, bgd, fgd, self.iterations,
+                            cv2.GC_INIT_WITH_MASK)
+            except cv2.error:  # degenerate colour models (e.g. a flat image): keep the seed
+                out[r0:r1, c0:c1] |= coarse[r0:r1, c0:c1]
+                continue
+            out[r0:r1, c0:c1] |= (mb == cv2.GC_FGD) | (mb == cv2.GC_PR_FGD)
+        return out
+
+
+def context_boxes(seeds: np.ndarray, context: float) -> list:
+    """Windows (r0, r1, c0, c1) around the 8-connected regions of ``seeds`` (H, W) bool: each region's
+    bounding box grown by ``context`` times its height / width on each side (at least 1 px), clipped
+    to the frame; windows that overlap are merged into their bounding box until none do."""
+    import cv2
+
+    H, W = seeds.shape
+    n, _, stats, _ = cv2.connectedComponentsWithStats(seeds.astype(np.uint8), connectivity=8)
+    boxes = []
+    for k in range(1, n):
+        x, y, w, h = (int(v) for v in stats[k, :4])
+        gy, gx = max(1, int(np.ceil(context * h))), max(1, int(np.ceil(context * w)))
+        boxes.append([max(0, y - gy), min(H, y + h + gy), max(0, x - gx), min(W, x + w + gx)])
+    merged = True
+    while merged:
+        merged = False
+        for i in range(len(boxes)):
+            for j in range(i + 1, len(boxes)):
+                a, b = boxes[i], boxes[j]
+                if a[0] < b[1] and b[0] < a[1] and a[2] < b[3] and b[2] < a[3]:
+                    boxes[i] = [min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3])]
+                    del boxes[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    return [tuple(b) for b in boxes]
 
 
 @dataclasses.dataclass(frozen=True)

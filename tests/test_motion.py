@@ -205,6 +205,23 @@ def test_grabcut_refiner_snaps_a_dilated_mask_to_the_object():
     assert refine.GrabCutRefiner()(img, full, pts, ids).all()
 
 
+def test_context_boxes_grow_each_region_and_merge_overlaps():
+    seeds = np.zeros((100, 200), bool)
+    seeds[10:20, 10:30] = True  # 10 x 20: grown by 10 / 20 px each side, clipped at the top
+    seeds[60:70, 150:160] = True  # far away: its own window
+    assert sorted(refine.context_boxes(seeds, 1.0)) == [(0, 30, 0, 50), (50, 80, 140, 170)]
+    seeds[33:38, 53:58] = True  # a speck whose window (28-43, 48-63) overlaps the first one's
+    assert sorted(refine.context_boxes(seeds, 1.0)) == [(0, 43, 0, 63), (50, 80, 140, 170)]
+    assert refine.context_boxes(np.zeros((5, 5), bool), 1.0) == []
+    # on its window (the default) the refiner snaps the disk as it does on the whole frame
+    img, disk = _disk_scene()
+    coarse = refine._dilate(disk, 5)
+    pts, ids, _ = refine.sample_prompts(coarse, 5, seed=0)
+    local = refine.GrabCutRefiner(reference_width=img.shape[1])(img, coarse, pts, ids)
+    iou = lambda m: (m & disk).sum() / (m | disk).sum()  # noqa: E731
+    assert iou(local) > 0.95
+
+
 def _leak_scene(obj_flow):
     """Flow (64, 96, 2): background (-3, 0) px plus a slight zoom, a square object moving
     ``obj_flow``; the mask is the object plus a 6-px leak into the background on its left."""
