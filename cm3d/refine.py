@@ -91,10 +91,11 @@ class GrabCutRefiner:
     Definite foreground around the prompts and in the coarse mask eroded by ``core_px``; probable
     foreground in the rest of it; probable background in a ``band_px`` ring; definite background
     elsewhere. Pixel sizes are for ``reference_width`` wide images and scale with the width.
-    GrabCut runs on a window around each group of seed regions (:func:`context_boxes`: the region's
-    box grown by ``context`` times its size on every side, overlapping windows merged), so the
-    background colour model is the region's surroundings and the cost follows the regions' size,
-    not the frame's; ``context=None``: the whole frame for all regions at once.
+    ``context=None`` (default): one GrabCut over the whole frame. A number: GrabCut on a window around
+    each group of seed regions (:func:`context_boxes`: the region's box grown by ``context`` times its
+    size on every side, overlapping windows merged), so the background colour model is the region's
+    surroundings and the cost follows the regions' size, not the frame's (docs/motion.md: 2-3x faster
+    on the kitchen's small false blobs, DAVIS J 0.692 against 0.699).
     """
 
     iterations: int = 3
@@ -102,7 +103,7 @@ class GrabCutRefiner:
     core_px: int = 14
     prompt_radius: int = 3
     reference_width: int = 512
-    context: float | None = 1.0
+    context: float | None = None
 
     def __call__(self, image, coarse, prompts, region_ids, hints: RefineHints = RefineHints()):
         import cv2

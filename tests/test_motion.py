@@ -213,11 +213,11 @@ def test_context_boxes_grow_each_region_and_merge_overlaps():
     seeds[33:38, 53:58] = True  # a speck whose window (28-43, 48-63) overlaps the first one's
     assert sorted(refine.context_boxes(seeds, 1.0)) == [(0, 43, 0, 63), (50, 80, 140, 170)]
     assert refine.context_boxes(np.zeros((5, 5), bool), 1.0) == []
-    # on its window (the default) the refiner snaps the disk as it does on the whole frame
+    # on its window the refiner snaps the disk as it does on the whole frame (the default)
     img, disk = _disk_scene()
     coarse = refine._dilate(disk, 5)
     pts, ids, _ = refine.sample_prompts(coarse, 5, seed=0)
-    local = refine.GrabCutRefiner(reference_width=img.shape[1])(img, coarse, pts, ids)
+    local = refine.GrabCutRefiner(reference_width=img.shape[1], context=1.0)(img, coarse, pts, ids)
     iou = lambda m: (m & disk).sum() / (m | disk).sum()  # noqa: E731
     assert iou(local) > 0.95
 
