@@ -230,11 +230,11 @@ def monst3r_masks(inputs, num_frames: int, shape, cfg) -> np.ndarray:
     """
     import jax
 
+    from cm3d.pipeline.run import upsample_masks
+
     sub = jax.tree.map(lambda a: np.asarray(a)[:num_frames], inputs)
     m = np.asarray(_monst3r_program()(sub.frame, sub.partner, sub.flow, sub.flow_rev, cfg.motion), bool)
-    s = cfg.stride
-    H, W = shape
-    return np.repeat(np.repeat(m, s, axis=1), s, axis=2)[:, :H, :W]
+    return upsample_masks(m, cfg.stride, shape)
 
 
 def _monst3r_one(prior_t, prior_t2, flow, flow_rev, mcfg):

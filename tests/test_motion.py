@@ -259,12 +259,19 @@ def test_grabcut_drops_uncertain_pixels_of_background_colour():
     assert iou(hinted) > 0.95 and iou(hinted) > iou(plain) + 0.05
 
 
-def test_refine_and_track_follows_a_moving_object():
+def _moving_disk(frames: int, shift: int = 4):
+    """The disk scene moving ``shift`` px right per frame: images, flows (t -> t+1, one per frame),
+    true masks and the first frame's disk."""
     img0, disk = _disk_scene()
-    shift = 4
-    images = np.stack([np.roll(img0, shift * t, axis=1) for t in range(4)])
-    flows = np.broadcast_to(np.array([shift, 0.0], np.float32), (3,) + disk.shape + (2,)).copy()
-    truth = np.stack([np.roll(disk, shift * t, axis=1) for t in range(3)])
+    images = np.stack([np.roll(img0, shift * t, axis=1) for t in range(frames)])
+    flows = np.broadcast_to(np.array([shift, 0.0], np.float32), (frames,) + disk.shape + (2,)).copy()
+    truth = np.stack([np.roll(disk, shift * t, axis=1) for t in range(frames)])
+    return images, flows, truth, disk
+
+
+def test_refine_and_track_follows_a_moving_object():
+    images, flows, truth, disk = _moving_disk(4)
+    flows, truth = flows[:3], truth[:3]
     calls = []
 
     def detect(t):
@@ -287,11 +294,7 @@ def test_refine_and_track_follows_a_moving_object():
 
 
 def test_refine_sequence_snaps_the_cue_masks_and_keeps_empty_frames_empty():
-    img0, disk = _disk_scene()
-    shift = 4
-    images = np.stack([np.roll(img0, shift * t, axis=1) for t in range(4)])
-    flows = np.broadcast_to(np.array([shift, 0.0], np.float32), (4,) + disk.shape + (2,)).copy()
-    truth = np.stack([np.roll(disk, shift * t, axis=1) for t in range(4)])
+    images, flows, truth, _ = _moving_disk(4)
     coarse = np.stack([refine._dilate(truth[t], 4) for t in range(4)])
     coarse[3] = False  # the cue found nothing in the last frame
     g = refine.GrabCutRefiner(reference_width=100)

@@ -178,6 +178,14 @@ class SequenceResult:
     global_graph: dict | None = None
 
 
+def upsample_masks(masks, stride: int, shape) -> np.ndarray:
+    """Masks (S, h, w) at the back end's 1 / ``stride`` resolution -> (S, H, W) bool at the input's
+    ``shape``: each pixel repeated ``stride`` times along both axes, cropped."""
+    H, W = shape
+    m = np.asarray(masks, bool)
+    return np.repeat(np.repeat(m, stride, axis=1), stride, axis=2)[:, :H, :W]
+
+
 def collect(outputs: StepOutputs, sequence, cfg: PipelineConfig = PipelineConfig()) -> SequenceResult:
     """Per-frame results from the stacked step outputs (host): the refined pose of every frame
     (from the window that refined it), full-resolution masks and one :class:`WindowRecord` per window."""
@@ -190,8 +198,7 @@ def collect(outputs: StepOutputs, sequence, cfg: PipelineConfig = PipelineConfig
         ok = w.valid.astype(bool)
         poses[w.index[ok]] = w.poses[ok]
         windows.append(WindowRecord.from_result(w, bool(cfg.use_memory)))
-    s = cfg.stride
-    masks = np.repeat(np.repeat(out.mask[:S].astype(bool), s, axis=1), s, axis=2)[:, :H, :W]
+    masks = upsample_masks(out.mask[:S], cfg.stride, (H, W))
     return SequenceResult(poses=poses, prior=np.asarray(sequence.cam_to_world, np.float64), masks=masks,
                           windows=windows, sequence=sequence)
 
@@ -205,8 +212,7 @@ def refined_masks(inputs: Inputs, outputs: StepOutputs, sequence, cfg: PipelineC
     S, H, W = sequence.depth.shape
     m = refine.refine_sequence(np.asarray(inputs.frame.image[:S]), np.asarray(inputs.flow[:S]),
                                np.asarray(outputs.mask[:S], bool))
-    s = cfg.stride
-    return np.repeat(np.repeat(m, s, axis=1), s, axis=2)[:, :H, :W]
+    return upsample_masks(m, cfg.stride, (H, W))
 
 
 def prior_result(seq, q: quality.InputQuality) -> SequenceResult:
