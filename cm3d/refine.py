@@ -209,7 +209,10 @@ class WatershedRefiner:
 class TrackConfig:
     """Tracking options. support_px: a warped mask survives within this distance of frame t's
     candidates; new_region_frac: an untracked candidate region this large (of H*W) triggers
-    re-detection; prompts_per_region; seed."""
+    re-detection; prompts_per_region; seed; keep_seeded: the refiner's output keeps only its 8-connected
+    regions that overlap the sure seeds (the tracked or detected mask less its background movers), so a
+    colour match elsewhere in the frame (a red wall like the tracked shirt) does not start a new,
+    untracked region that is then carried forward."""
 
     support_px: int = 6
     grow: bool = True  # also seed with the candidate regions that overlap the tracked mask
@@ -219,6 +222,7 @@ class TrackConfig:
     new_region_overlap: float = 0.2
     prompts_per_region: int = 8
     seed: int = 0
+    keep_seeded: bool = True  # a refined mask keeps only its regions that hold a sure seed pixel
 
 
 def _affine_fit(uv, flow, iters: int = 5):
@@ -359,6 +363,8 @@ def refine_and_track(images: np.ndarray, flows: np.ndarray, candidates: np.ndarr
         prompts, ids, _ = sample_prompts(sure, cfg.prompts_per_region, cfg.seed + t)
         hints = RefineHints(None if depth is None else depth[t], None if residual is None else residual[t], uncertain)
         refined = np.asarray(refiner(images[t], seed_mask, prompts, ids, hints), bool)
+        if cfg.keep_seeded:
+            refined = overlapping(refined, sure)
         masks[t] = refined
         prev = refined
     return masks, detected
