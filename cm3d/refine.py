@@ -212,7 +212,14 @@ class TrackConfig:
     re-detection; prompts_per_region; seed; keep_seeded: the refiner's output keeps only its 8-connected
     regions that overlap the sure seeds (the tracked or detected mask less its background movers), so a
     colour match elsewhere in the frame (a red wall like the tracked shirt) does not start a new,
-    untracked region that is then carried forward."""
+    untracked region that is then carried forward; check_added: on every frame after the first, pixels the
+    refiner adds outside the sure seeds are dropped when, over the frame's own flow (t -> t+1), they move like the background around
+    the refined mask and not like it (:func:`background_movers` at ``motion_k``): a neighbour of the
+    object's colour that the band let in (a second camel, the fence behind it) is caught the frame it
+    enters, before it is warped and tracked as the object. Off by default: for tracking from a prompt with
+    no geometric cue (``davis_track.py``), where colour and motion are all the evidence; the pipeline's
+    masks are bounded by the geometric cue, and there the check costs articulated and slow parts
+    (docs/motion.md)."""
 
     support_px: int = 6
     grow: bool = True  # also seed with the candidate regions that overlap the tracked mask
@@ -223,6 +230,7 @@ class TrackConfig:
     prompts_per_region: int = 8
     seed: int = 0
     keep_seeded: bool = True  # a refined mask keeps only its regions that hold a sure seed pixel
+    check_added: bool = False  # pixels the refiner adds outside the sure seeds must not move like the background
 
 
 def _affine_fit(uv, flow, iters: int = 5):
@@ -365,6 +373,11 @@ def refine_and_track(images: np.ndarray, flows: np.ndarray, candidates: np.ndarr
         refined = np.asarray(refiner(images[t], seed_mask, prompts, ids, hints), bool)
         if cfg.keep_seeded:
             refined = overlapping(refined, sure)
+        added = refined & ~sure if prev is not None else None  # a detection frame keeps its detector's say
+        if cfg.check_added and added is not None and added.any():
+            refined &= ~(added & background_movers(refined, flows[t], cfg.motion_k, seed=cfg.seed + t))
+            if cfg.keep_seeded:
+                refined = overlapping(refined, sure)
         masks[t] = refined
         prev = refined
     return masks, detected

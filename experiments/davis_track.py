@@ -13,8 +13,10 @@ stages that need neither are measured:
   frame 0's *ground-truth* mask as its detection and nothing detected afterwards: DAVIS's
   semi-supervised protocol, which SAM2 is scored with (~0.9 J; the classical 2016 propagation
   methods 0.6-0.7). Without geometry every pixel is a candidate (the tracked mask is not cut by a
-  motion cue) and the mask does not grow into candidate regions. J over frames 1..S-2 (frame 0 is
-  the prompt; the last frame has no forward flow);
+  motion cue) and the mask does not grow into candidate regions; pixels GrabCut adds outside the
+  tracked mask are dropped when they move like the background (``TrackConfig.check_added``: colour and
+  motion are all the evidence here). J over frames 1..S-2 (frame 0 is the prompt; the last frame has
+  no forward flow);
 * ``flow``: :func:`cm3d.motion.flow_motion_cue` (a GMM on the DIS flow, moving = outside the
   slowest component), no prompt, frames 0..S-2.
 
@@ -58,7 +60,8 @@ def track_masks(images, flows, first_mask, refiner):
     H, W = first_mask.shape
     candidates = np.ones((T, H, W), bool)  # no geometry: every pixel may move
     empty = np.zeros((H, W), bool)
-    cfg = refine.TrackConfig(grow=False, new_region_frac=2.0)  # never re-detect
+    # never re-detect; without geometry, pixels GrabCut adds by colour must not move like the background
+    cfg = refine.TrackConfig(grow=False, new_region_frac=2.0, check_added=True)
     masks, _ = refine.refine_and_track(images, flows, candidates, lambda t: first_mask if t == 0 else empty,
                                        refiner, cfg=cfg)
     return masks

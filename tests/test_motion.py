@@ -312,12 +312,40 @@ def test_tracking_keeps_only_the_refined_regions_that_hold_a_sure_seed():
     g = refine.GrabCutRefiner(reference_width=W)
     run = lambda keep: refine.refine_and_track(  # noqa: E731
         images, flows, np.ones((T, H, W), bool), lambda t: disks[0] | blob if t == 0 else np.zeros((H, W), bool),
-        g, cfg=refine.TrackConfig(grow=False, new_region_frac=2.0, keep_seeded=keep))[0]
+        g, cfg=refine.TrackConfig(grow=False, new_region_frac=2.0, keep_seeded=keep, check_added=False))[0]
     kept, loose = run(True), run(False)
     iou = lambda a, b: (a & b).sum() / (a | b).sum()  # noqa: E731
     assert loose[1:, blob].mean() > 0.9  # the check below can fail: without the rule the blob stays
     for t in range(1, T):
         assert not kept[t, blob].any() and iou(kept[t], disks[t]) > 0.9
+
+
+def test_tracking_drops_added_pixels_that_move_like_the_background():
+    """A red disk moves +3 px a frame while the camera pans (background flow -3 px); in frame 1 a red
+    strip of the background touches it. GrabCut adds the strip (the disk's colour, inside its band) and
+    it is connected to the disk, so only its motion tells it apart: over frame 1's own flow it moves
+    like the background around the mask, and ``check_added`` drops it."""
+    rng = np.random.default_rng(1)
+    H, W, T = 80, 100, 3
+    v, u = np.mgrid[0:H, 0:W]
+    red = lambda n: (rng.integers(0, 60, (n, 3)) + np.array([170, 30, 60])).astype(np.uint8)  # noqa: E731
+    disks = np.stack([(u - 40 - 3 * t) ** 2 + (v - 40) ** 2 < 14**2 for t in range(T)])
+    strip = (u >= 57) & (u < 62) & (v >= 30) & (v < 50) & ~disks[1]
+    images = (rng.integers(0, 60, (T, H, W, 3)) + np.array([20, 140, 40])).astype(np.uint8)
+    for t in range(T):
+        images[t][disks[t]] = red(disks[t].sum())
+    images[1][strip] = red(strip.sum())
+    flows = np.zeros((T, H, W, 2), np.float32)
+    flows[..., 0] = np.where(disks, 3.0, -3.0)
+    flows += rng.normal(0, 0.1, flows.shape).astype(np.float32)
+    run = lambda check: refine.refine_and_track(  # noqa: E731
+        images, flows, np.ones((T, H, W), bool), lambda t: disks[0] if t == 0 else np.zeros((H, W), bool),
+        refine.GrabCutRefiner(reference_width=W), cfg=refine.TrackConfig(grow=False, new_region_frac=2.0,
+                                                                           check_added=check))[0]
+    checked, loose = run(True), run(False)
+    iou = lambda a, b: (a & b).sum() / (a | b).sum()  # noqa: E731
+    assert loose[1, strip].mean() > 0.8  # the check below can fail: without it the strip joins the mask
+    assert checked[1, strip].mean() < 0.1 and iou(checked[1], disks[1]) > 0.9
 
 
 def test_refine_sequence_snaps_the_cue_masks_and_keeps_empty_frames_empty():
