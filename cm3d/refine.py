@@ -215,12 +215,11 @@ class TrackConfig:
     untracked region that is then carried forward; check_added: on every frame after the first, pixels
     the refiner adds outside the sure seeds are dropped when, over the frame's own flow (t -> t+1), they
     move like the background around the refined mask and not like it (:func:`background_movers` at
-    ``motion_k``): a neighbour of the
-    object's colour that the band let in (a second camel, the fence behind it) is caught the frame it
-    enters, before it is warped and tracked as the object. Off by default: for tracking from a prompt with
-    no geometric cue (``davis_track.py``), where colour and motion are all the evidence; the pipeline's
-    masks are bounded by the geometric cue, and there the check costs articulated and slow parts
-    (docs/motion.md)."""
+    ``motion_k``): a neighbour of the object's colour that the band let in (a second camel, the fence
+    behind it) is caught the frame it enters, before it is warped and tracked as the object. Off by
+    default: for tracking from a prompt with no geometric cue (``davis_track.py``), where colour and
+    motion are all the evidence; the pipeline's masks are bounded by the geometric cue, and there the
+    check costs articulated and slow parts (docs/motion.md)."""
 
     support_px: int = 6
     grow: bool = True  # also seed with the candidate regions that overlap the tracked mask
@@ -374,11 +373,12 @@ def refine_and_track(images: np.ndarray, flows: np.ndarray, candidates: np.ndarr
         refined = np.asarray(refiner(images[t], seed_mask, prompts, ids, hints), bool)
         if cfg.keep_seeded:
             refined = overlapping(refined, sure)
-        added = refined & ~sure if prev is not None else None  # the first frame is the detector's say
-        if cfg.check_added and added is not None and added.any():
-            refined &= ~(added & background_movers(refined, flows[t], cfg.motion_k, seed=cfg.seed + t))
-            if cfg.keep_seeded:
-                refined = overlapping(refined, sure)
+        if cfg.check_added and prev is not None:  # the first frame is the detector's say
+            added = refined & ~sure
+            if added.any():
+                refined &= ~(added & background_movers(refined, flows[t], cfg.motion_k, seed=cfg.seed + t))
+                if cfg.keep_seeded:
+                    refined = overlapping(refined, sure)
         masks[t] = refined
         prev = refined
     return masks, detected

@@ -181,12 +181,20 @@ def test_warp_mask_shifts_with_the_flow():
         np.testing.assert_array_equal(refine.warp_mask(m, f), np.asarray(motion.warp_mask(m, f)))
 
 
+def _green(rng, shape):
+    return (rng.integers(0, 60, shape + (3,)) + np.array([20, 140, 40])).astype(np.uint8)  # noisy green
+
+
+def _red(rng, n):
+    return (rng.integers(0, 60, (n, 3)) + np.array([170, 30, 60])).astype(np.uint8)  # n noisy red pixels
+
+
 def _disk_scene(H=80, W=100):
     rng = np.random.default_rng(0)
-    img = (rng.integers(0, 60, (H, W, 3)) + np.array([20, 140, 40])).astype(np.uint8)  # noisy green
+    img = _green(rng, (H, W))
     v, u = np.mgrid[0:H, 0:W]
     disk = (u - 55) ** 2 + (v - 40) ** 2 < 18**2
-    img[disk] = (rng.integers(0, 60, (disk.sum(), 3)) + np.array([170, 30, 60])).astype(np.uint8)
+    img[disk] = _red(rng, disk.sum())
     return img, disk
 
 
@@ -302,11 +310,10 @@ def test_tracking_keeps_only_the_refined_regions_that_hold_a_sure_seed():
     H, W, T = 80, 100, 4
     v, u = np.mgrid[0:H, 0:W]
     blob = (u - 15) ** 2 + (v - 15) ** 2 < 8**2
-    red = lambda n: (rng.integers(0, 60, (n, 3)) + np.array([170, 30, 60])).astype(np.uint8)  # noqa: E731
-    back = (rng.integers(0, 60, (H, W, 3)) + np.array([20, 140, 40])).astype(np.uint8)
-    back[blob] = red(blob.sum())
+    back = _green(rng, (H, W))
+    back[blob] = _red(rng, blob.sum())
     disks = np.stack([(u - 45 - 3 * t) ** 2 + (v - 45) ** 2 < 14**2 for t in range(T)])
-    images = np.stack([np.where(disks[t][..., None], red(H * W).reshape(H, W, 3), back) for t in range(T)])
+    images = np.stack([np.where(disks[t][..., None], _red(rng, H * W).reshape(H, W, 3), back) for t in range(T)])
     flows = np.zeros((T, H, W, 2), np.float32)
     flows[..., 0] = 3.0 * disks
     g = refine.GrabCutRefiner(reference_width=W)
@@ -328,13 +335,12 @@ def test_tracking_drops_added_pixels_that_move_like_the_background():
     rng = np.random.default_rng(1)
     H, W, T = 80, 100, 3
     v, u = np.mgrid[0:H, 0:W]
-    red = lambda n: (rng.integers(0, 60, (n, 3)) + np.array([170, 30, 60])).astype(np.uint8)  # noqa: E731
     disks = np.stack([(u - 40 - 3 * t) ** 2 + (v - 40) ** 2 < 14**2 for t in range(T)])
     strip = (u >= 57) & (u < 62) & (v >= 30) & (v < 50) & ~disks[1]
-    images = (rng.integers(0, 60, (T, H, W, 3)) + np.array([20, 140, 40])).astype(np.uint8)
+    images = _green(rng, (T, H, W))
     for t in range(T):
-        images[t][disks[t]] = red(disks[t].sum())
-    images[1][strip] = red(strip.sum())
+        images[t][disks[t]] = _red(rng, disks[t].sum())
+    images[1][strip] = _red(rng, strip.sum())
     flows = np.zeros((T, H, W, 2), np.float32)
     flows[..., 0] = np.where(disks, 3.0, -3.0)
     flows += rng.normal(0, 0.1, flows.shape).astype(np.float32)
