@@ -10,6 +10,10 @@ threshold) it prints IoU, precision and recall (pooled over the pixels of a sequ
 over sequences) on frames 0..S-2 (those with a forward flow), and each stage's own throughput in
 frames per second (its share of the work: OpenCV DIS flow and SIFT matching included where the
 stage needs them; JAX stages timed after compilation, vmapped over the frames of a sequence).
+The masks are the pipeline step's cues (:func:`cm3d.motion.sequence_motion_cues` with the reverse
+flows): every pair's forward-backward occlusion check and, for frames t >= 1, the previous frame as
+a second partner (``MotionConfig.two_pairs``; before stop 53 this script judged each pair alone,
+without the occlusion check). The geo and robust stages' fps time the pair (t, t+1) alone.
 Headline JSON keys: iou_flow, iou_geo, iou_robust, iou_refined, iou_monst3r (+ precision, recall,
 fps per stage).
 """
@@ -77,13 +81,15 @@ def run_sequence(seq, cfg: motion.MotionConfig, refiner, track_cfg: refine.Track
     secs = {}
     t0 = time.perf_counter()
     flows = flow_ops.sequence_flow(seq.images)
+    # the reverse flows (t+1 -> t): the occlusion check and the second partner, as in the pipeline's step
+    flows_rev = np.stack([flow_ops.compute_flow(seq.images[t + 1], seq.images[t]) for t in range(T)])
     secs["dis"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     matches = keypoints.sequence_matches(seq.images)
     secs["sift"] = time.perf_counter() - t0
     flows_j = jnp.asarray(flows)
     if warm:  # compile every stage once on this shape, outside the timings
-        jax.block_until_ready(motion.sequence_motion_cues(priors, flows_j, matches, cfg))
+        jax.block_until_ready(motion.sequence_motion_cues(priors, flows_j, matches, cfg, flows_rev))
         for f, x in ((FLOW_J, flows_j), (GEO_J, flows_j), (BASE_J, flows_j)):
             jax.block_until_ready(f(a, b, x, matches, cfg))
     flow_mask, secs["gmm"] = _timed(FLOW_J, a, b, flows_j, matches, cfg)
@@ -93,7 +99,7 @@ def run_sequence(seq, cfg: motion.MotionConfig, refiner, track_cfg: refine.Track
         jax.block_until_ready(ROBUST_J(a, b, geo_in, matches, cfg))
     robust, secs["robust"] = _timed(ROBUST_J, a, b, geo_in, matches, cfg)
     base_prior, secs["baseline"] = _timed(BASE_J, a, b, flows_j, matches, cfg)
-    cues, secs["all_cues"] = _timed(motion.sequence_motion_cues, priors, flows_j, matches, cfg)
+    cues, secs["all_cues"] = _timed(motion.sequence_motion_cues, priors, flows_j, matches, cfg, flows_rev)
 
     cues_np = jax.tree.map(np.asarray, cues)
     t0 = time.perf_counter()

@@ -82,6 +82,16 @@ def test_motion_cues_jit_vmap_invariance(clean_seq):
             np.testing.assert_array_equal(getattr(batched, f)[i], getattr(single, f), err_msg=f)
         np.testing.assert_allclose(batched.residual[i], single.residual, atol=1e-3)
         assert _finite(single)
+    # with the reverse flows: the step's cues (occlusion check; frame t >= 1 also judged against t - 1)
+    rev = -flows[:, ::-1]  # any flow field will do for the comparison
+    both = motion.sequence_motion_cues(pri, flows, m, CFG, flows_rev=rev)
+    for i in range(2):
+        a, b = _pair(clean_seq, i)
+        second = motion.SecondPair(partner=jax.tree.map(lambda x: x[max(i - 1, 0)], pri), flow=rev[max(i - 1, 0)],
+                                   flow_rev=flows[max(i - 1, 0)], valid=jnp.asarray(i >= 1))
+        single = CUES(a, b, flows[i], jax.tree.map(lambda x: x[i], m), CFG, rev[i], second)
+        for f in ("geo_mask", "valid", "candidates", "robust_mask", "occluded"):
+            np.testing.assert_array_equal(getattr(both, f)[i], getattr(single, f), err_msg=f)
 
 
 @pytest.mark.parametrize("case", ["zero_flow", "constant_flow", "all_static", "all_dynamic"])

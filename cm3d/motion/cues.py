@@ -72,12 +72,28 @@ def _rejects_static(prior_t: FramePrior, prior_t2: FramePrior, flow, geo, cfg: M
                            cfg.appearance_radius, cfg.appearance_k, cfg.appearance_q)
 
 
-def sequence_motion_cues(priors: FramePrior, flows, matches, cfg: MotionConfig = MotionConfig()) -> MotionCues:
+def sequence_motion_cues(priors: FramePrior, flows, matches, cfg: MotionConfig = MotionConfig(),
+                         flows_rev=None) -> MotionCues:
     """Cues of frames 0..S-2 of a sequence (priors with a leading S axis, flows (S-1, H, W, 2),
-    matches with a leading S-1 axis): one compiled ``vmap`` of :func:`motion_cues`."""
+    matches with a leading S-1 axis): one compiled ``vmap`` of :func:`motion_cues`.
+
+    ``flows_rev`` (S-1, H, W, 2), flow t+1 -> t: the cues the pipeline's step computes. Every pair
+    gets the forward-backward occlusion check, and every frame t >= 1 its previous frame as the
+    second partner (:class:`SecondPair`: flow t -> t-1 is ``flows_rev[t-1]``, its reverse
+    ``flows[t-1]``). Without it, each pair on its own, with no occlusion check."""
     first = jax.tree.map(lambda a: a[:-1], priors)
     second = jax.tree.map(lambda a: a[1:], priors)
-    return _batched(first, second, jnp.asarray(flows, jnp.float32), matches, cfg)
+    flows = jnp.asarray(flows, jnp.float32)
+    if flows_rev is None:
+        return _batched(first, second, flows, matches, cfg)
+    flows_rev = jnp.asarray(flows_rev, jnp.float32)
+    if flows_rev.shape != flows.shape:
+        raise ValueError(f"flows_rev: shape {flows_rev.shape} differs from flows {flows.shape}")
+    n = flows.shape[0]
+    prev = jnp.maximum(jnp.arange(n) - 1, 0)
+    pair = SecondPair(partner=jax.tree.map(lambda a: a[prev], priors), flow=flows_rev[prev], flow_rev=flows[prev],
+                      valid=jnp.arange(n) >= 1)
+    return _batched_both(first, second, flows, matches, flows_rev, pair, cfg)
 
 
 @jax.jit
@@ -99,4 +115,6 @@ def warp_mask(mask, flow):
 
 
 _batched = jax.jit(jax.vmap(motion_cues, in_axes=(0, 0, 0, 0, None)), static_argnums=4)
+_batched_both = jax.jit(jax.vmap(lambda a, b, f, m, fr, sp, cfg: motion_cues(a, b, f, m, cfg, fr, sp),
+                                 in_axes=(0, 0, 0, 0, 0, 0, None)), static_argnums=6)
 motion_cues_jit = jax.jit(motion_cues, static_argnums=4)
