@@ -85,7 +85,7 @@ def run_sequence(seq, cfg: motion.MotionConfig, refiner, track_cfg: refine.Track
     secs["dis"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     # the reverse flows (t+1 -> t): the occlusion check and the second partner, as in the pipeline's step
-    flows_rev = np.stack([flow_ops.compute_flow(seq.images[t + 1], seq.images[t]) for t in range(T)])
+    flows_rev = flow_ops.sequence_flow(seq.images[::-1])[::-1]
     secs["dis_rev"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     matches = keypoints.sequence_matches(seq.images)

@@ -85,7 +85,7 @@ def sequence_motion_cues(priors: FramePrior, flows, matches, cfg: MotionConfig =
     second = jax.tree.map(lambda a: a[1:], priors)
     flows = jnp.asarray(flows, jnp.float32)
     if flows_rev is None:
-        return _batched(first, second, flows, matches, cfg)
+        return _batched(first, second, flows, matches, None, None, cfg)
     flows_rev = jnp.asarray(flows_rev, jnp.float32)
     if flows_rev.shape != flows.shape:
         raise ValueError(f"flows_rev: shape {flows_rev.shape} differs from flows {flows.shape}")
@@ -93,7 +93,7 @@ def sequence_motion_cues(priors: FramePrior, flows, matches, cfg: MotionConfig =
     prev = jnp.maximum(jnp.arange(n) - 1, 0)
     pair = SecondPair(partner=jax.tree.map(lambda a: a[prev], priors), flow=flows_rev[prev], flow_rev=flows[prev],
                       valid=jnp.arange(n) >= 1)
-    return _batched_both(first, second, flows, matches, flows_rev, pair, cfg)
+    return _batched(first, second, flows, matches, flows_rev, pair, cfg)
 
 
 @jax.jit
@@ -114,7 +114,7 @@ def warp_mask(mask, flow):
     return _warp(jnp.asarray(mask, bool), jnp.asarray(flow, jnp.float32))
 
 
-_batched = jax.jit(jax.vmap(motion_cues, in_axes=(0, 0, 0, 0, None)), static_argnums=4)
-_batched_both = jax.jit(jax.vmap(lambda a, b, f, m, fr, sp, cfg: motion_cues(a, b, f, m, cfg, fr, sp),
-                                 in_axes=(0, 0, 0, 0, 0, 0, None)), static_argnums=6)
+# flow_rev / second may be None (empty pytrees: nothing to map)
+_batched = jax.jit(jax.vmap(lambda a, b, f, m, fr, sp, cfg: motion_cues(a, b, f, m, cfg, fr, sp),
+                            in_axes=(0, 0, 0, 0, 0, 0, None)), static_argnums=6)
 motion_cues_jit = jax.jit(motion_cues, static_argnums=4)
