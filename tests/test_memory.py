@@ -97,6 +97,30 @@ def test_recall_vmaps_over_queries():
     assert list(np.asarray(batched.candidates[:, 0])) == [0, 1, 2]
 
 
+def test_identify_without_a_2d_candidate_skips_verification_and_reports_none():
+    """No 2D candidate: the 3D stages do not run (a lax.cond) and the identification says so; under vmap
+    (both branches run) each query gets what it gets alone."""
+    bank = _bank(3)
+    rng = np.random.default_rng(7)
+    u = rng.normal(size=(CFG.max_keyframes, CFG.image_dim)).astype(np.float32)
+    lost = _entry(11).replace(kf_desc=u / np.linalg.norm(u, axis=1, keepdims=True))  # unlike every stored keyframe
+    known = _entry(1)  # map 1's own contents: a 2D candidate
+    ident = jax.jit(memory.identify, static_argnums=2)
+    key = jax.random.PRNGKey(0)
+    none = ident(bank, lost, CFG, key)
+    assert (np.asarray(none.recall.candidates) == -1).all() and int(none.map_id) == -1 and int(none.candidate) == -1
+    assert (np.asarray(none.candidate_inliers) == -1).all() and int(none.verification.inlier_count) == 0
+    np.testing.assert_array_equal(np.asarray(none.verification.transform), np.eye(4))
+    assert not bool(none.verification.accepted) and np.isinf(float(none.placement_error))
+    some = ident(bank, known, CFG, key)
+    assert int(some.recall.candidates[0]) == 1 and int(some.candidate_inliers[0]) >= 0
+    both = jax.tree.map(lambda *a: jnp.stack(a), lost, known)
+    batched = jax.jit(jax.vmap(lambda e: memory.identify(bank, e, CFG, key)))(both)
+    for i, single in enumerate((none, some)):
+        jax.tree.map(lambda b, s: np.testing.assert_allclose(np.asarray(b)[i], np.asarray(s), rtol=1e-5, atol=1e-5),
+                     batched, single)
+
+
 def test_save_load_round_trip(tmp_path):
     bank = _bank(3)
     memory.save(bank, tmp_path / "bank.cm3d", CFG)

@@ -51,7 +51,9 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
     and whose keypoint inliers fix its pose (:func:`placement_error` at most
     ``cfg.alone_max_placement_error``) is accepted whatever the model or the thresholds say. With
     ``"full"`` verification an accepted candidate also overlaps the map: ICP fitness at least
-    ``cfg.min_overlap``.
+    ``cfg.min_overlap``. A query without 2D candidates skips the 3D stages (a ``lax.cond``; under
+    ``vmap`` both branches run) and reports no candidate: inliers -1, zero ICP figures, identity
+    transform, NaN acceptance score, infinite placement error.
     """
     r = recall(bank, entry.kf_desc, entry.kf_valid, entry.cloud_desc, cfg)
     cand = r.candidates
@@ -59,29 +61,44 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
         v = decide(bank, cand[0], jnp.eye(4), jnp.ones(()), jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), None, cfg)
         return Identification(recall=r, candidate_inliers=jnp.zeros(cfg.top_k, jnp.int32), verification=v,
                               map_id=jnp.where(v.accepted, cand[0], -1))
-    qk, qf, cluster, frame, sep = query_keypoints(entry, cfg)
-    keys = jax.random.split(key, cfg.top_k)
-    Ts, scales, matches, inliers, scored = jax.vmap(
-        lambda m, k: keypoint_poses(bank, jnp.maximum(m, 0), qk, qf, cluster, frame, sep, cfg, k))(cand, keys)
-    best = jnp.where(cand >= 0, jnp.max(inliers, 1), -1)
-    b = jnp.argmax(best)
-    m = cand[b]
-    v, screen, s_kp = refine_pose(bank, m, entry, Ts[b], scales[b], matches[b], inliers[b], cfg)
-    feats = acceptance_features(bank, entry, r, best, b, inliers[b], screen, s_kp, v)
-    score = None
-    if cfg.accept_weights and cfg.verification == "full":
-        score = acceptance_score(feats, cfg)
-        v = v.replace(accepted=model_accepts(bank, m, v, score, cfg))
-    # the chance test (3D feature stage, under the final pose): an a-contrario bound on the keypoint inliers
-    thr = cfg.ransac_distance * jnp.maximum(bank.voxel_size[jnp.maximum(m, 0)], 1e-12)
-    k, lam, log_nfa = chance_test(scored[0][b], scored[1][b], scored[2][b], v.transform, thr, chance_tests(cfg))
-    place = placement_error(scored[0][b], scored[1][b], scored[2][b], v.transform, thr)
-    # far beyond chance and placed by its inliers (not a small cluster of them): accepted alone
-    alone = hard_checks(bank, m, v, cfg) & (log_nfa < cfg.accept_log_nfa) & (place <= cfg.alone_max_placement_error)
-    accepted = (v.accepted & (log_nfa < cfg.max_log_nfa)) | alone
-    if cfg.verification == "full":  # the window must share a part of its surface with the map, not touch it
-        accepted = accepted & (v.fitness >= cfg.min_overlap)
-    v = v.replace(accepted=accepted)
-    return Identification(recall=r, candidate_inliers=best, verification=v, map_id=jnp.where(v.accepted, m, -1),
-                          candidate=m, features=feats, acceptance=score, pose_inliers=k, chance_inliers=lam,
-                          log_nfa=log_nfa, placement_error=place)
+
+    def candidates(_):
+        qk, qf, cluster, frame, sep = query_keypoints(entry, cfg)
+        keys = jax.random.split(key, cfg.top_k)
+        Ts, scales, matches, inliers, scored = jax.vmap(
+            lambda m, k: keypoint_poses(bank, jnp.maximum(m, 0), qk, qf, cluster, frame, sep, cfg, k))(cand, keys)
+        best = jnp.where(cand >= 0, jnp.max(inliers, 1), -1)
+        b = jnp.argmax(best)
+        m = cand[b]
+        v, screen, s_kp = refine_pose(bank, m, entry, Ts[b], scales[b], matches[b], inliers[b], cfg)
+        feats = acceptance_features(bank, entry, r, best, b, inliers[b], screen, s_kp, v)
+        score = None
+        if cfg.accept_weights and cfg.verification == "full":
+            score = acceptance_score(feats, cfg)
+            v = v.replace(accepted=model_accepts(bank, m, v, score, cfg))
+        # the chance test (3D feature stage, under the final pose): an a-contrario bound on the keypoint inliers
+        thr = cfg.ransac_distance * jnp.maximum(bank.voxel_size[jnp.maximum(m, 0)], 1e-12)
+        k, lam, log_nfa = chance_test(scored[0][b], scored[1][b], scored[2][b], v.transform, thr, chance_tests(cfg))
+        place = placement_error(scored[0][b], scored[1][b], scored[2][b], v.transform, thr)
+        # far beyond chance and placed by its inliers (not a small cluster of them): accepted alone
+        alone = (hard_checks(bank, m, v, cfg) & (log_nfa < cfg.accept_log_nfa)
+                 & (place <= cfg.alone_max_placement_error))
+        accepted = (v.accepted & (log_nfa < cfg.max_log_nfa)) | alone
+        if cfg.verification == "full":  # the window must share a part of its surface with the map, not touch it
+            accepted = accepted & (v.fitness >= cfg.min_overlap)
+        v = v.replace(accepted=accepted)
+        return Identification(recall=r, candidate_inliers=best, verification=v,
+                              map_id=jnp.where(v.accepted, m, -1), candidate=m, features=feats, acceptance=score,
+                              pose_inliers=k, chance_inliers=lam, log_nfa=log_nfa, placement_error=place)
+
+    def no_candidate(_):  # nothing to verify: what the stages would report for no map, without running them
+        z = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(candidates, None))
+        v = z.verification.replace(transform=jnp.eye(4, dtype=z.verification.transform.dtype),
+                                   scale=jnp.ones_like(z.verification.scale))
+        return z.replace(recall=r, candidate_inliers=z.candidate_inliers - 1, verification=v, map_id=z.map_id - 1,
+                         candidate=z.candidate - 1,
+                         acceptance=None if z.acceptance is None else jnp.full_like(z.acceptance, jnp.nan),
+                         placement_error=jnp.full_like(z.placement_error, jnp.inf))
+
+    # the expensive stages (3D keypoints, ICP) run only for a query the 2D recall found candidates for
+    return jax.lax.cond(jnp.any(cand >= 0), candidates, no_candidate, None)
