@@ -64,7 +64,9 @@ class PipelineConfig:
         graph=factors.GraphConfig(sigma_proj=0.5),
         solver=lm.LMOptions(backward="none", max_iterations=20, max_linear_solves=40, batching="native"),
         outliers=factors.OutlierConfig(tau_min_px=1.0))
-    memory: memory.MemoryConfig = memory.MemoryConfig(max_maps=16, max_points=4096, max_keyframes=16)
+    # 4096 keypoints per map (the benchmark's 200-map bank keeps 1024): docs/memory.md, stop 54
+    memory: memory.MemoryConfig = memory.MemoryConfig(max_maps=16, max_points=4096, max_keyframes=16,
+                                                      max_keypoints=4096)
     track_check: TrackCheckConfig = TrackCheckConfig()
     use_memory: bool = True
     map_min_support: float = 0.2
