@@ -93,10 +93,11 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
 
     def no_candidate(_):  # nothing to verify: what the stages would report for no map, without running them
         z = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(candidates, None))
+        none = lambda a: jnp.full_like(a, -1)  # noqa: E731
         v = z.verification.replace(transform=jnp.eye(4, dtype=z.verification.transform.dtype),
                                    scale=jnp.ones_like(z.verification.scale))
-        return z.replace(recall=r, candidate_inliers=z.candidate_inliers - 1, verification=v, map_id=z.map_id - 1,
-                         candidate=z.candidate - 1,
+        return z.replace(recall=r, candidate_inliers=none(z.candidate_inliers), verification=v,
+                         map_id=none(z.map_id), candidate=none(z.candidate),
                          acceptance=None if z.acceptance is None else jnp.full_like(z.acceptance, jnp.nan),
                          placement_error=jnp.full_like(z.placement_error, jnp.inf))
 
