@@ -1,5 +1,7 @@
 """The synthetic world: determinism, ground-truth consistency and the VGGT-like prior model."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -125,3 +127,20 @@ def test_bad_level_is_a_clear_error(visits):
     (images, gt), _ = visits
     with pytest.raises(ValueError, match="level"):
         synthetic.make_priors(images, gt, "extreme")
+
+
+def test_mover_speed_slows_the_movers_clock_and_nothing_else():
+    """``WorldConfig.mover_speed`` (a tuning set with slow movers): at 0.1 the movers' frame 10 is their
+    frame 1 at full speed, at 0 they stand still; the camera path is the same."""
+    scene = synthetic.make_scene(4, SMALL)
+    cams = synthetic.camera_trajectory(scene, 1, 11, SMALL)
+    def pose(speed):
+        return synthetic.moving_objects(scene, 1, cams, dataclasses.replace(SMALL, mover_speed=speed))[4]
+
+    full, slow, still = pose(1.0), pose(0.1), pose(0.0)
+    assert full.shape == (11, SMALL.num_moving, 4, 4)
+    np.testing.assert_allclose(slow[10], full[1], atol=1e-12)
+    np.testing.assert_allclose(still, np.broadcast_to(full[0], still.shape), atol=1e-12)
+    assert not np.allclose(full[10], full[0])
+    slow_cfg = dataclasses.replace(SMALL, mover_speed=0.1)
+    np.testing.assert_array_equal(cams, synthetic.camera_trajectory(scene, 1, 11, slow_cfg))

@@ -44,6 +44,7 @@ class WorldConfig:
     width: int = 512
     fov_deg: float = 60.0  # horizontal field of view
     fps: float = 10.0
+    mover_speed: float = 1.0  # the moving objects' clock against the camera's (0.1: ten times slower; 0: still)
     supersample: int = 2  # s x s rays per pixel for the RGB image
     num_static_boxes: int = 5
     num_moving: int = 3
@@ -210,7 +211,7 @@ def moving_objects(scene: Scene, visit: int, cams: np.ndarray, cfg: WorldConfig)
     (kind, size, color, seed, pose (S,M,4,4)); their colour2 / style come from :func:`assemble`."""
     rng = np.random.default_rng([scene.seed, visit, 2])
     S = len(cams)
-    t = np.arange(S) / cfg.fps
+    t = np.arange(S) / cfg.fps * cfg.mover_speed
     mid = cams[S // 2]
     kinds, sizes, colors, seeds, poses = [], [], [], [], []
     for k in range(cfg.num_moving):
