@@ -134,6 +134,7 @@ def test_mover_speed_slows_the_movers_clock_and_nothing_else():
     frame 1 at full speed, at 0 they stand still; the camera path is the same."""
     scene = synthetic.make_scene(4, SMALL)
     cams = synthetic.camera_trajectory(scene, 1, 11, SMALL)
+
     def pose(speed):
         return synthetic.moving_objects(scene, 1, cams, dataclasses.replace(SMALL, mover_speed=speed))[4]
 
