@@ -4,6 +4,7 @@ one-line window report. Every writer is atomic: an interrupted run never leaves 
 from __future__ import annotations
 
 import json
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import jax
@@ -255,6 +256,35 @@ def window_line(w) -> str:
             f"({w.memory_landmarks} from memory), {w.observations} observations")
 
 
+def _trajectory_pictures(out: Path, result, overlay_every: int) -> None:
+    """Mask overlays and the trajectories' picture of :func:`write_results`."""
+    from cm3d.eval import plots
+
+    seq = result.sequence
+    plots.save_mask_overlays(out / "overlays", seq.images, result.masks, every=overlay_every)
+    trajs = {"prior": result.prior, "refined": result.poses}
+    if seq.gt is not None:  # aligned in float32: a picture
+        gt_c2w = np.asarray(seq.gt.cam_to_world, np.float32)
+        trajs = {k: np.asarray(programs.call("align_trajectory", _align_jit, {}, np.asarray(v, np.float32),
+                                             gt_c2w)) for k, v in trajs.items()}
+        trajs["ground truth"] = seq.gt.cam_to_world
+    plots.plot_trajectories(out / "trajectory.png", trajs, title="prior vs refined" +
+                            (" vs ground truth (Sim3-aligned)" if seq.gt is not None else ""))
+
+
+def _map_picture(out: Path, result, bank, pts: np.ndarray, cols: np.ndarray) -> None:
+    """The top-down picture of the static map (and the recalled memory) of :func:`write_results`."""
+    from cm3d.eval import plots
+
+    mpts, mcols, recalled = memory_points(bank, result)
+    allp = np.concatenate([pts, mpts]) if len(mpts) else pts
+    if len(allp):
+        allc = np.concatenate([cols, mcols]) if len(mpts) else cols
+        flag = np.concatenate([np.zeros(len(pts), bool), np.full(len(mpts), recalled)])
+        plots.plot_topdown_map(out / "topdown_map.png", allp, allc, from_memory=flag, cameras=result.poses,
+                               title="static map" + (" (recalled memory brighter)" if recalled else ""))
+
+
 def write_results(out_dir, result, bank=None, overlay_every: int = 5, pictures: bool = True,
                   commit=None) -> dict:
     """Everything a user looks at for one sequence, in ``out_dir``: trajectory.txt (refined, TUM),
@@ -265,38 +295,32 @@ def write_results(out_dir, result, bank=None, overlay_every: int = 5, pictures: 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     seq = result.sequence
-    write_tum(out / "trajectory.txt", seq.timestamps, result.poses)
-    write_tum(out / "trajectory_prior.txt", seq.timestamps, result.prior)
-    write_masks(out / "masks", result.masks)
-    pts, cols = static_map(seq, result.poses, result.masks)
-    write_ply(out / "static_map.ply", pts, cols)
-    recall = {"windows": [w.to_json() for w in result.windows]}
-    report = getattr(result, "report", None)
-    if report is not None:
-        recall["run"] = report.to_json()
-    if commit is not None:
-        recall["memory"] = commit.to_json()
-    write_json(out / "recall.json", recall)
-    m = sequence_metrics(result)
-    if m is not None:
-        write_json(out / "metrics.json", m)
-    if pictures:
-        from cm3d.eval import plots
-
-        plots.save_mask_overlays(out / "overlays", seq.images, result.masks, every=overlay_every)
-        trajs = {"prior": result.prior, "refined": result.poses}
-        if seq.gt is not None:  # aligned in float32: a picture
-            gt_c2w = np.asarray(seq.gt.cam_to_world, np.float32)
-            trajs = {k: np.asarray(programs.call("align_trajectory", _align_jit, {}, np.asarray(v, np.float32),
-                                                 gt_c2w)) for k, v in trajs.items()}
-            trajs["ground truth"] = seq.gt.cam_to_world
-        plots.plot_trajectories(out / "trajectory.png", trajs, title="prior vs refined" +
-                                (" vs ground truth (Sim3-aligned)" if seq.gt is not None else ""))
-        mpts, mcols, recalled = memory_points(bank, result)
-        allp = np.concatenate([pts, mpts]) if len(mpts) else pts
-        if len(allp):
-            allc = np.concatenate([cols, mcols]) if len(mpts) else cols
-            flag = np.concatenate([np.zeros(len(pts), bool), np.full(len(mpts), recalled)])
-            plots.plot_topdown_map(out / "topdown_map.png", allp, allc, from_memory=flag, cameras=result.poses,
-                                   title="static map" + (" (recalled memory brighter)" if recalled else ""))
+    # the pictures (matplotlib, one thread at a time) in a worker thread beside the files
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="cm3d-pictures") if pictures else None
+    try:
+        if pool is not None:
+            jobs = [pool.submit(_trajectory_pictures, out, result, overlay_every)]
+        write_tum(out / "trajectory.txt", seq.timestamps, result.poses)
+        write_tum(out / "trajectory_prior.txt", seq.timestamps, result.prior)
+        write_masks(out / "masks", result.masks)
+        pts, cols = static_map(seq, result.poses, result.masks)
+        if pool is not None:
+            jobs.append(pool.submit(_map_picture, out, result, bank, pts, cols))
+        write_ply(out / "static_map.ply", pts, cols)
+        recall = {"windows": [w.to_json() for w in result.windows]}
+        report = getattr(result, "report", None)
+        if report is not None:
+            recall["run"] = report.to_json()
+        if commit is not None:
+            recall["memory"] = commit.to_json()
+        write_json(out / "recall.json", recall)
+        m = sequence_metrics(result)
+        if m is not None:
+            write_json(out / "metrics.json", m)
+        if pool is not None:
+            for job in jobs:
+                job.result()
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True)
     return m or {}

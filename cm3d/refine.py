@@ -331,67 +331,101 @@ def overlapping(candidates: np.ndarray, tracked: np.ndarray) -> np.ndarray:
     return hit[labels]
 
 
-def refine_and_track(images: np.ndarray, flows: np.ndarray, candidates: np.ndarray,
-                     detect: Callable[[int], np.ndarray], refiner: MaskRefiner | None = None,
-                     depth: np.ndarray | None = None, residual: np.ndarray | None = None,
-                     cfg: TrackConfig = TrackConfig()):
-    """Refined and tracked dynamic masks of frames 0..T-1 (T = len(flows)).
+class MaskTracker:
+    """:func:`refine_and_track` one frame at a time, for callers that get the frames as they come (the
+    pipeline refines each piece of a sequence while the device runs the next). Host state: the previous
+    frame's refined mask. ``step`` over frames 0, 1, ... gives exactly :func:`refine_and_track`'s masks.
+    GrabCut's colour models start from OpenCV's random generator, one per thread, whose state is whatever
+    the thread's earlier OpenCV calls left: ``rng_seed`` (not None) seeds it (``cv2.setRNGSeed``) in the
+    thread that runs the first step, so the masks do not depend on the process's history."""
 
-    images (>= T, H, W, 3) uint8; flows (T, H, W, 2) t -> t+1; candidates (T, H, W) bool; ``detect(t)``
-    returns frame t's detection mask (called only when needed); depth / residual: optional hints.
-    Returns (masks (T, H, W) bool, detected (T,) bool).
-    """
-    refiner = refiner or GrabCutRefiner()
-    T = len(flows)
-    H, W = candidates.shape[1:]
-    masks = np.zeros((T, H, W), bool)
-    detected = np.zeros(T, bool)
-    prev = None
-    for t in range(T):
-        cand = np.asarray(candidates[t], bool)
+    def __init__(self, refiner: MaskRefiner | None = None, cfg: TrackConfig = TrackConfig(),
+                 rng_seed: int | None = None):
+        self.refiner = refiner or GrabCutRefiner()
+        self.cfg = cfg
+        self.rng_seed = rng_seed
+        self.prev = None
+
+    def step(self, t: int, image: np.ndarray, candidate: np.ndarray, detect: Callable[[int], np.ndarray],
+             flow_in: np.ndarray | None, flow_out: np.ndarray, hints: RefineHints = RefineHints()):
+        """Frame ``t``: image (H, W, 3) uint8, candidate (H, W) bool, ``detect(t)`` its detection mask
+        (called only when needed), flow_in (H, W, 2) t-1 -> t (unused on the first frame), flow_out t -> t+1
+        (read by ``cfg.check_added`` only); ``hints``' depth / residual are passed to the refiner.
+        Returns (refined mask (H, W) bool, detected)."""
+        cfg, prev = self.cfg, self.prev
+        if prev is None and self.rng_seed is not None:
+            import cv2
+
+            cv2.setRNGSeed(int(self.rng_seed))
+        cand = np.asarray(candidate, bool)
         uncertain = None
         if prev is None:
             seed_mask = np.asarray(detect(t), bool)
-            detected[t] = True
+            detected = True
         else:
-            warped = warp_mask(prev, flows[t - 1])
+            detected = False
+            warped = warp_mask(prev, flow_in)
             if cfg.motion_split:
-                movers = background_movers(prev, flows[t - 1], cfg.motion_k, seed=cfg.seed + t)
-                uncertain = warp_mask(movers, flows[t - 1]) if movers.any() else None
+                movers = background_movers(prev, flow_in, cfg.motion_k, seed=cfg.seed + t)
+                uncertain = warp_mask(movers, flow_in) if movers.any() else None
             tracked = warped & _dilate(cand, cfg.support_px)
             if cfg.grow:
                 tracked = tracked | overlapping(cand, tracked)
             fresh = new_motion(cand, tracked, cfg)
             if fresh.any():
-                detected[t] = True
+                detected = True
                 seed_mask = tracked | (np.asarray(detect(t), bool) & fresh)
             else:
                 seed_mask = tracked
         sure = seed_mask if uncertain is None else seed_mask & ~uncertain
         prompts, ids, _ = sample_prompts(sure, cfg.prompts_per_region, cfg.seed + t)
-        hints = RefineHints(None if depth is None else depth[t], None if residual is None else residual[t], uncertain)
-        refined = np.asarray(refiner(images[t], seed_mask, prompts, ids, hints), bool)
+        hints = dataclasses.replace(hints, uncertain=uncertain)
+        refined = np.asarray(self.refiner(image, seed_mask, prompts, ids, hints), bool)
         if cfg.keep_seeded:
             refined = overlapping(refined, sure)
         if cfg.check_added and prev is not None:  # the first frame is the detector's say
             added = refined & ~sure
             if added.any():
-                refined &= ~(added & background_movers(refined, flows[t], cfg.motion_k, seed=cfg.seed + t))
+                refined &= ~(added & background_movers(refined, flow_out, cfg.motion_k, seed=cfg.seed + t))
                 if cfg.keep_seeded:
                     refined = overlapping(refined, sure)
-        masks[t] = refined
-        prev = refined
+        self.prev = refined
+        return refined, detected
+
+
+def refine_and_track(images: np.ndarray, flows: np.ndarray, candidates: np.ndarray,
+                     detect: Callable[[int], np.ndarray], refiner: MaskRefiner | None = None,
+                     depth: np.ndarray | None = None, residual: np.ndarray | None = None,
+                     cfg: TrackConfig = TrackConfig(), rng_seed: int | None = None):
+    """Refined and tracked dynamic masks of frames 0..T-1 (T = len(flows)).
+
+    images (>= T, H, W, 3) uint8; flows (T, H, W, 2) t -> t+1; candidates (T, H, W) bool; ``detect(t)``
+    returns frame t's detection mask (called only when needed); depth / residual: optional hints;
+    rng_seed: see :class:`MaskTracker` (None: OpenCV's generator as the calling thread left it).
+    Returns (masks (T, H, W) bool, detected (T,) bool).
+    """
+    tracker = MaskTracker(refiner, cfg, rng_seed)
+    T = len(flows)
+    H, W = candidates.shape[1:]
+    masks = np.zeros((T, H, W), bool)
+    detected = np.zeros(T, bool)
+    for t in range(T):
+        hints = RefineHints(None if depth is None else depth[t], None if residual is None else residual[t])
+        masks[t], detected[t] = tracker.step(t, images[t], candidates[t], detect, flows[t - 1] if t else None,
+                                             flows[t], hints)
     return masks, detected
 
 
 def refine_sequence(images: np.ndarray, flows: np.ndarray, masks: np.ndarray, refiner: MaskRefiner | None = None,
-                    cfg: TrackConfig = TrackConfig()) -> np.ndarray:
+                    cfg: TrackConfig = TrackConfig(), rng_seed: int | None = 0) -> np.ndarray:
     """The motion cue's dynamic masks (S, H, W) bool of a sequence, refined and tracked
     (:func:`refine_and_track` with the masks as both the candidates and the detections).
 
     images (S, H, W, 3) uint8; flows (>= S-1, H, W, 2), flow t -> t+1 for t < S-1. A frame whose cue
     found nothing stays empty (a tracked mask needs the cue's support within ``cfg.support_px``), so a
-    static scene's empty masks stay empty. Returns (S, H, W) bool.
+    static scene's empty masks stay empty. ``rng_seed``: OpenCV's generator seeded at the first frame
+    (:class:`MaskTracker`; default 0, the state of a fresh thread), so a sequence's masks do not depend on
+    what ran before it in the process. Returns (S, H, W) bool.
     """
     masks, images = np.asarray(masks, bool), np.asarray(images)
     S = len(masks)
@@ -401,7 +435,7 @@ def refine_sequence(images: np.ndarray, flows: np.ndarray, masks: np.ndarray, re
     if len(flows) < S - 1 or flows.shape[1:3] != masks.shape[1:] or images.shape[1:3] != masks.shape[1:]:
         raise ValueError(f"refine_sequence: images {images.shape}, flows {flows.shape} and masks {masks.shape} "
                          "must share (H, W), with a flow for each frame but the last")
-    # refine_and_track reads flows[t - 1] for t >= 1 only: frame S-1's slot is never used
+    # flows[t - 1] warps frame t's seed; flows[t] is read only by ``cfg.check_added``: frame S-1's slot is zeros
     flows = np.concatenate([flows[:S - 1], np.zeros((1,) + flows.shape[1:], flows.dtype)])
-    out, _ = refine_and_track(images, flows, masks, lambda t: masks[t], refiner, cfg=cfg)
+    out, _ = refine_and_track(images, flows, masks, lambda t: masks[t], refiner, cfg=cfg, rng_seed=rng_seed)
     return out

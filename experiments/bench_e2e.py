@@ -41,6 +41,7 @@ if "xla_cpu_parallel_codegen_split_count" not in os.environ.get("XLA_FLAGS", "")
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
 import json  # noqa: E402
+import shutil  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -233,8 +234,9 @@ def main(argv=None) -> dict:
         rows, equal = {}, True
         for name, path in inputs.items():
             n = int(name.rsplit("_", 1)[1])
-            if n == lengths[0] or args.quick:  # cold: fresh, empty cache folders
+            if n == lengths[0] or args.quick:  # cold: fresh, empty cache folders (a kept DIR's are emptied)
                 cache = work / f"cache_{name}"
+                shutil.rmtree(cache, ignore_errors=True)
                 rows[(name, "cold")] = run_process(path, work / f"out_{name}_cold", cache, extra)
             else:  # one configuration and image size: the first kitchen run's programs
                 cache = work / f"cache_kitchen_{lengths[0]}"

@@ -453,3 +453,36 @@ def test_track_cue_rigid_fit_matches_opencv_pnp_and_flags_slow_movers():
         "points", "poses", "K", "pose_idx", "uv", "valid", "block")), 2, dataclasses.replace(cfg, track_cue=False))))
     with pytest.raises(ValueError, match="track_min_obs"):
         motion.MotionConfig(track_min_obs=3)
+
+
+def test_the_pipelines_mask_stream_equals_refine_sequence():
+    """:class:`cm3d.pipeline.run.MaskStream` refines a sequence piece by piece in its thread (padded
+    last piece, the last frame's flow slot holding the reversed pair as in the pipeline's inputs):
+    bitwise :func:`refine.refine_sequence`'s masks, whatever state earlier OpenCV calls left the
+    calling thread's random generator in (GrabCut's colour models start from it)."""
+    from types import SimpleNamespace
+
+    import cv2
+
+    from cm3d.pipeline.run import MaskStream
+
+    cv2.randu(np.zeros((7, 1), np.float32), 0.0, 1.0)  # advance this thread's generator
+
+    S, size = 7, 3
+    images, flows, truth, _ = _moving_disk(S)
+    coarse = np.stack([refine._dilate(truth[t], 4) for t in range(S)])
+    coarse[5] = False
+    ref = refine.refine_sequence(images, flows[:S - 1], coarse)
+    flows[S - 1] = -flows[S - 2]  # the pipeline's last frame: its pair with S-2, reversed
+    pad = lambda a: np.concatenate([a, np.repeat(a[-1:], 9 - S, axis=0)])  # noqa: E731
+    img_p, flow_p, mask_p = pad(images), pad(flows), pad(coarse)
+    mask_p[S:] = True  # padding frames are never read
+    stream = MaskStream(SimpleNamespace(depth=np.zeros((S,) + coarse.shape[1:])), SimpleNamespace(stride=1))
+    for first in range(0, 9, size):
+        sl = slice(first, first + size)
+        stream.add(first, SimpleNamespace(num_frames=size, flow=flow_p[sl], frame=SimpleNamespace(image=img_p[sl])),
+                   mask_p[sl])
+    out = stream.result()
+    np.testing.assert_array_equal(out, ref)
+    iou = lambda a, b: (a & b).sum() / (a | b).sum()  # noqa: E731
+    assert iou(out[2], truth[2]) > 0.8 and not out[5].any()

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import jax
@@ -215,6 +216,52 @@ def refined_masks(inputs: Inputs, outputs: StepOutputs, sequence, cfg: PipelineC
     return upsample_masks(m, cfg.stride, (H, W))
 
 
+class MaskStream:
+    """:func:`refined_masks` piece by piece, in a worker thread, while the device runs the next piece and
+    the host prepares the one after (GrabCut is single-threaded host work). ``add(first, piece, mask)``
+    queues a piece's real frames (host :class:`Inputs`, its device masks); ``result()`` waits for the
+    worker and returns :func:`refined_masks`'s masks, bitwise (the same :class:`cm3d.refine.MaskTracker`
+    steps over the same frames, flows and masks, OpenCV's generator seeded alike)."""
+
+    def __init__(self, sequence, cfg: PipelineConfig):
+        from cm3d import refine
+
+        self.S, self.H, self.W = sequence.depth.shape
+        self.cfg = cfg
+        self.tracker = refine.MaskTracker(rng_seed=0)  # refine_sequence's default
+        self.parts, self.flow_in = [], None
+        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="cm3d-masks")
+        self.jobs = []
+
+    def add(self, first: int, piece: Inputs, mask) -> None:
+        self.jobs.append(self.pool.submit(self._piece, first, piece, mask))
+
+    def _piece(self, first: int, piece: Inputs, mask) -> None:
+        n = max(0, min(piece.num_frames, self.S - first))
+        m = np.asarray(mask, bool)[:n]  # waits for the device
+        for i in range(n):
+            t = first + i
+            # refine_sequence's flows: t -> t+1 for t < S-1, zeros for the last frame
+            out = np.asarray(piece.flow[i]) if t < self.S - 1 else np.zeros_like(np.asarray(piece.flow[i]))
+            r, _ = self.tracker.step(t, np.asarray(piece.frame.image[i]), m[i], lambda _, i=i: m[i], self.flow_in, out)
+            self.parts.append(r)
+            self.flow_in = out
+
+    def result(self) -> np.ndarray:
+        try:
+            for job in self.jobs:
+                job.result()
+        finally:
+            self.pool.shutdown(wait=True)
+        m = np.stack(self.parts)
+        return upsample_masks(m, self.cfg.stride, (self.H, self.W))
+
+    def cancel(self) -> None:
+        for job in self.jobs:
+            job.cancel()
+        self.pool.shutdown(wait=True)
+
+
 def prior_result(seq, q: quality.InputQuality) -> SequenceResult:
     """The result of a sequence the back end did not run (degenerate input): the prior poses, no
     dynamic pixel, no window; its report carries the reasons."""
@@ -280,11 +327,12 @@ def _prefetch(seq, cfg: PipelineConfig, state, bank):
     return t
 
 
-def _run_pieces(seq, cfg: PipelineConfig, state, bank, progress):
+def _run_pieces(seq, cfg: PipelineConfig, state, bank, progress, masks: MaskStream | None = None):
     """The back end over one sequence, a piece of ``keyframe_interval`` frames at a time: while the
-    device runs piece k (asynchronous dispatch), the host prepares piece k+1. ``state``: the
-    previous sequence's (None: a fresh one around ``bank``). Returns (state, NumPy StepOutputs and
-    Inputs of the padded sequence)."""
+    device runs piece k (asynchronous dispatch), the host prepares piece k+1 (and ``masks``, when
+    given, refines piece k-1's masks in its thread). ``state``: the previous sequence's (None: a fresh
+    one around ``bank``). Returns (state, NumPy StepOutputs and Inputs of the padded sequence, the
+    stream of refined masks or None when the pieces had to run again)."""
     outs, hosts, start = [], [], None
     _prefetch(seq, cfg, state, bank)
     for first, piece in prepare_chunks(seq, cfg, progress=progress):
@@ -298,6 +346,8 @@ def _run_pieces(seq, cfg: PipelineConfig, state, bank, progress):
         state, out = programs.call("run_frames", run_frames, {"cfg": cfg}, state, x, np.bool_(first == 0))
         outs.append(out)
         hosts.append(piece)
+        if masks is not None:
+            masks.add(first, piece, out.mask)
     try:
         jax.block_until_ready((state, outs))
     except jax.errors.JaxRuntimeError as err:
@@ -308,6 +358,9 @@ def _run_pieces(seq, cfg: PipelineConfig, state, bank, progress):
         warnings.warn(f"program cache: the stored sequence program failed ({str(err)[:200]}); "
                       "compiling it afresh", stacklevel=2)
         state, outs = start, []
+        if masks is not None:
+            masks.cancel()
+            masks = None
         for k, piece in enumerate(hosts):
             x = jax.tree.map(jnp.asarray, piece)
             if k == 0:
@@ -315,7 +368,7 @@ def _run_pieces(seq, cfg: PipelineConfig, state, bank, progress):
             state, out = programs.call("run_frames", run_frames, {"cfg": cfg}, state, x, np.bool_(k == 0))
             outs.append(out)
     stack = lambda parts: jax.tree.map(lambda *a: np.concatenate([np.asarray(p) for p in a]), *parts)  # noqa: E731
-    return state, stack(outs), stack(hosts)
+    return state, stack(outs), stack(hosts), masks
 
 
 def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBank | None = None,
@@ -340,23 +393,29 @@ def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBa
             source = str(seq)
             seq = load_input(seq)
         quality.check_runnable(seq, source)
-        q = quality.assess_input(seq) if checks else None
+        # the front end's hole filling in a thread while the input is assessed (both host work that
+        # releases the GIL; a degenerate input's filled copy is dropped)
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="cm3d-holes") as pool:
+            filled = pool.submit(quality.fill_depth_holes, seq)
+            q = quality.assess_input(seq) if checks else None
         if q is not None and q.degenerate:
             results.append(prior_result(seq, q))
             if observe is not None:
                 observe(i, None, None, results[-1], state.bank if state is not None else bank)
             continue
         cb = None if progress is None else (lambda d, n, i=i: progress(f"visit {i}: flow", d, n))
-        state, out, host_inputs = _run_pieces(quality.fill_depth_holes(seq), cfg, state, bank, cb)
+        stream = MaskStream(seq, cfg) if cfg.refine_masks else None
+        state, out, host_inputs, stream = _run_pieces(filled.result(), cfg, state, bank, cb, stream)
         if progress is not None:
             progress(f"visit {i}: back end", 1, 1)
         res = collect(out, seq, cfg)
-        if cfg.refine_masks:
-            res.masks = refined_masks(host_inputs, out, seq, cfg)
-        # one pose graph over every frame: the windows' refined motions and the priors (issue 26)
+        # one pose graph over every frame: the windows' refined motions and the priors (issue 26), while
+        # the mask stream finishes its last pieces
         res.chained = res.poses.copy()
         res.poses, res.global_graph = global_refine(res.prior, res.chained, [w.frames for w in res.windows],
                                                     cfg.global_graph)
+        if cfg.refine_masks:
+            res.masks = stream.result() if stream is not None else refined_masks(host_inputs, out, seq, cfg)
         res.report = RunReport(q, None, True, True)
         if checks:
             ph = check_refinement(seq, res.prior, res.poses, res.masks)
