@@ -49,8 +49,9 @@ class PipelineConfig:
     default 0.04, as before: the same matches at a sixth of the matching cost); global_graph: the pose
     graph over every frame after the windows (:mod:`cm3d.pipeline.global_graph`, host side);
     refine_masks: the output masks are the motion cue's masks refined and tracked over the sequence
-    (:func:`cm3d.refine.refine_sequence`, GrabCut, host side, after the back end: the landmarks and
-    the memory use the cue's masks); seed: the RANSAC key.
+    (:func:`cm3d.refine.refine_sequence`, GrabCut, host side, a piece at a time beside the back end:
+    :class:`cm3d.pipeline.run.MaskStream`; the landmarks and the memory use the cue's masks); seed: the
+    RANSAC key.
 
     ``batching="native"``: the LM's sequential ``custom_vmap`` rule fails inside ``scan`` + ``cond``."""
 
