@@ -204,24 +204,14 @@ def collect(outputs: StepOutputs, sequence, cfg: PipelineConfig = PipelineConfig
                           windows=windows, sequence=sequence)
 
 
-def refined_masks(inputs: Inputs, outputs: StepOutputs, sequence, cfg: PipelineConfig) -> np.ndarray:
-    """The cue's masks of one sequence refined and tracked (:func:`cm3d.refine.refine_sequence`) at the
-    back end's resolution, from the host :class:`Inputs` (images, flows t -> t+1) and the step outputs;
-    upsampled to the input's (S, H, W) like :func:`collect`'s."""
-    from cm3d import refine
-
-    S, H, W = sequence.depth.shape
-    m = refine.refine_sequence(np.asarray(inputs.frame.image[:S]), np.asarray(inputs.flow[:S]),
-                               np.asarray(outputs.mask[:S], bool))
-    return upsample_masks(m, cfg.stride, (H, W))
-
-
 class MaskStream:
-    """:func:`refined_masks` piece by piece, in a worker thread, while the device runs the next piece and
-    the host prepares the one after (GrabCut is single-threaded host work). ``add(first, piece, mask)``
-    queues a piece's real frames (host :class:`Inputs`, its device masks); ``result()`` waits for the
-    worker and returns :func:`refined_masks`'s masks, bitwise (the same :class:`cm3d.refine.MaskTracker`
-    steps over the same frames, flows and masks, OpenCV's generator seeded alike)."""
+    """The cue's masks of one sequence refined and tracked (:func:`cm3d.refine.refine_sequence`, bitwise:
+    the same :class:`cm3d.refine.MaskTracker` steps over the same frames, flows t -> t+1 and masks,
+    OpenCV's generator seeded alike) at the back end's resolution, a piece at a time in a worker thread
+    while the device runs the next piece and the host prepares the one after (GrabCut is single-threaded
+    host work). ``add(first, piece, mask)`` queues a piece's real frames (host :class:`Inputs`, its device
+    masks); ``result()`` waits for the worker and returns the masks upsampled to the input's (S, H, W)
+    like :func:`collect`'s."""
 
     def __init__(self, sequence, cfg: PipelineConfig):
         from cm3d import refine
@@ -241,8 +231,8 @@ class MaskStream:
         m = np.asarray(mask, bool)[:n]  # waits for the device
         for i in range(n):
             t = first + i
-            # refine_sequence's flows: t -> t+1 for t < S-1, zeros for the last frame
-            out = np.asarray(piece.flow[i]) if t < self.S - 1 else np.zeros_like(np.asarray(piece.flow[i]))
+            flow = np.asarray(piece.flow[i])
+            out = flow if t < self.S - 1 else np.zeros_like(flow)  # refine_sequence's: the last frame's are zeros
             r, _ = self.tracker.step(t, np.asarray(piece.frame.image[i]), m[i], lambda _, i=i: m[i], self.flow_in, out)
             self.parts.append(r)
             self.flow_in = out
@@ -332,8 +322,8 @@ def _run_pieces(seq, cfg: PipelineConfig, state, bank, progress, masks: MaskStre
     device runs piece k (asynchronous dispatch), the host prepares piece k+1 (and ``masks``, when
     given, refines piece k-1's masks in its thread). ``state``: the previous sequence's (None: a fresh
     one around ``bank``). Returns (state, NumPy StepOutputs and Inputs of the padded sequence, the
-    stream of refined masks or None when the pieces had to run again)."""
-    outs, hosts, start = [], [], None
+    stream of refined masks: ``masks``, or its replacement when the pieces had to run again)."""
+    outs, hosts, firsts, start = [], [], [], None
     _prefetch(seq, cfg, state, bank)
     for first, piece in prepare_chunks(seq, cfg, progress=progress):
         piece = _without_hole_features(piece)
@@ -346,6 +336,7 @@ def _run_pieces(seq, cfg: PipelineConfig, state, bank, progress, masks: MaskStre
         state, out = programs.call("run_frames", run_frames, {"cfg": cfg}, state, x, np.bool_(first == 0))
         outs.append(out)
         hosts.append(piece)
+        firsts.append(first)
         if masks is not None:
             masks.add(first, piece, out.mask)
     try:
@@ -358,15 +349,17 @@ def _run_pieces(seq, cfg: PipelineConfig, state, bank, progress, masks: MaskStre
         warnings.warn(f"program cache: the stored sequence program failed ({str(err)[:200]}); "
                       "compiling it afresh", stacklevel=2)
         state, outs = start, []
-        if masks is not None:
+        if masks is not None:  # its pieces' masks came from the failed program: a new stream
             masks.cancel()
-            masks = None
-        for k, piece in enumerate(hosts):
+            masks = MaskStream(seq, cfg)
+        for k, (first, piece) in enumerate(zip(firsts, hosts)):
             x = jax.tree.map(jnp.asarray, piece)
             if k == 0:
                 programs.discard("run_frames", {"cfg": cfg}, state, x, np.bool_(True))
             state, out = programs.call("run_frames", run_frames, {"cfg": cfg}, state, x, np.bool_(k == 0))
             outs.append(out)
+            if masks is not None:
+                masks.add(first, piece, out.mask)
     stack = lambda parts: jax.tree.map(lambda *a: np.concatenate([np.asarray(p) for p in a]), *parts)  # noqa: E731
     return state, stack(outs), stack(hosts), masks
 
@@ -415,7 +408,7 @@ def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBa
         res.poses, res.global_graph = global_refine(res.prior, res.chained, [w.frames for w in res.windows],
                                                     cfg.global_graph)
         if cfg.refine_masks:
-            res.masks = stream.result() if stream is not None else refined_masks(host_inputs, out, seq, cfg)
+            res.masks = stream.result()
         res.report = RunReport(q, None, True, True)
         if checks:
             ph = check_refinement(seq, res.prior, res.poses, res.masks)
