@@ -96,6 +96,17 @@ def test_round_trip_is_exact(tmp_path, compress):
     np.testing.assert_allclose(E[:, :, :3] @ centre + E[:, :, 3:], 0.0, atol=1e-12)  # camera centre -> origin
 
 
+def test_sequence_from_arrays_copies_unless_asked_not_to():
+    arrays = io.sequence_arrays(make_seq())
+    seq = io.sequence_from_arrays(arrays)
+    before = seq.depth.copy()
+    arrays["depth"] += 1.0  # the caller's arrays change afterwards: the sequence does not
+    np.testing.assert_array_equal(seq.depth, before)
+    shared = io.sequence_from_arrays(arrays, copy=False)  # what load_sequence does with the arrays it read
+    assert np.shares_memory(shared.depth, arrays["depth"])
+    np.testing.assert_array_equal(shared.depth, before + 1.0)
+
+
 def test_without_ground_truth_or_optionals(tmp_path):
     seq = make_seq(gt=False).replace(world_points=None, meta={})
     save_sequence(tmp_path / "s.npz", seq)

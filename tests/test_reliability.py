@@ -224,7 +224,7 @@ def test_input_statistics_equal_their_plain_formulas():
     rng = np.random.default_rng(4)
     smooth = np.cumsum(rng.integers(0, 3, (2, 20, 24, 3)), axis=2).clip(0, 255)
     images = np.concatenate([smooth, rng.integers(0, 256, (1, 20, 24, 3)), np.full((1, 20, 24, 3), 7)]).astype(np.uint8)
-    grey = quality._grey(images)
+    grey = quality.grey_levels(images)
     assert np.array_equal(grey, images.astype(np.float64).mean(-1))
     r = lambda a, b: np.corrcoef(a.ravel(), b.ravel())[0, 1]  # noqa: E731
     corr = [0.5 * (r(g[:, :-1], g[:, 1:]) + r(g[:-1], g[1:])) for g in grey[:3]]

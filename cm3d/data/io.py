@@ -169,9 +169,10 @@ def save_sequence(path: str | os.PathLike, seq: Sequence, compress: bool = False
         (np.savez_compressed if compress else np.savez)(f, **arrays)
 
 
-def _float(a: np.ndarray | None, dtype) -> np.ndarray | None:
-    """Cast floating arrays to ``dtype``; others stay as they are, for validation to report."""
-    return a.astype(dtype) if a is not None and np.issubdtype(a.dtype, np.floating) else a
+def _float(a: np.ndarray | None, dtype, copy: bool = True) -> np.ndarray | None:
+    """Cast floating arrays to ``dtype`` (a copy unless ``copy`` is False and the dtype is already
+    right); others stay as they are, for validation to report."""
+    return a.astype(dtype, copy=copy) if a is not None and np.issubdtype(a.dtype, np.floating) else a
 
 
 def _drop_channel(a: np.ndarray | None) -> np.ndarray | None:
@@ -256,12 +257,13 @@ def _read_archive(path, src) -> dict[str, np.ndarray]:
 def load_sequence(path: str | os.PathLike) -> Sequence:
     """Read a ``.npz`` written by :func:`save_sequence` or saved from VGGT's predictions dict."""
     src = os.fspath(path)
-    return sequence_from_arrays(_read_archive(path, src), src)
+    return sequence_from_arrays(_read_archive(path, src), src, copy=False)  # arrays just read: nobody else's
 
 
-def sequence_from_arrays(arrays: dict, source: str = "<arrays>") -> Sequence:
+def sequence_from_arrays(arrays: dict, source: str = "<arrays>", copy: bool = True) -> Sequence:
     """A validated :class:`Sequence` from a dict of arrays with the keys of the file format (a
-    VGGT predictions dict, for example); unknown keys are ignored."""
+    VGGT predictions dict, for example); unknown keys are ignored. ``copy=False``: arrays that already
+    have their dtype are used as they are (the sequence shares their memory), not copied."""
     src = source
     for key in ("images", "depth", "intrinsic"):
         if key not in arrays:
@@ -277,11 +279,11 @@ def sequence_from_arrays(arrays: dict, source: str = "<arrays>") -> Sequence:
                                          f"that 'intrinsic' {raw['intrinsic'].shape} has")
                 raw[key] = a[0]
 
-    depth = _float(_drop_channel(raw["depth"]), np.float32)
+    depth = _float(_drop_channel(raw["depth"]), np.float32, copy)
     images = _images_uint8(src, raw["images"], depth)
     S = images.shape[0] if images.ndim else 0  # a bad shape is reported by validation
     conf = raw.get("depth_conf")
-    conf = np.ones(depth.shape, np.float32) if conf is None else _float(_drop_channel(conf), np.float32)
+    conf = np.ones(depth.shape, np.float32) if conf is None else _float(_drop_channel(conf), np.float32, copy)
     ts = raw.get("timestamps")
     if ts is None:
         ts = np.arange(S, dtype=np.float64)
@@ -314,19 +316,19 @@ def sequence_from_arrays(arrays: dict, source: str = "<arrays>") -> Sequence:
             mask = mask.astype(bool)
         gt = GroundTruth(
             cam_to_world=gt_c2w,
-            depth=_float(_drop_channel(raw["gt_depth"]), np.float32),
-            intrinsic=_float(raw.get("gt_intrinsic", raw["intrinsic"]), np.float64),
+            depth=_float(_drop_channel(raw["gt_depth"]), np.float32, copy),
+            intrinsic=_float(raw.get("gt_intrinsic", raw["intrinsic"]), np.float64, copy),
             dynamic_mask=mask,
-            flow=_float(raw.get("gt_flow"), np.float32),
+            flow=_float(raw.get("gt_flow"), np.float32, copy),
         )
     seq = Sequence(
         images=images,
         depth=depth,
         depth_conf=conf,
-        intrinsic=_float(raw["intrinsic"], np.float64),
+        intrinsic=_float(raw["intrinsic"], np.float64, copy),
         cam_to_world=c2w,
         timestamps=ts,
-        world_points=_float(raw.get("world_points"), np.float32),
+        world_points=_float(raw.get("world_points"), np.float32, copy),
         gt=gt,
         meta=meta,
     )

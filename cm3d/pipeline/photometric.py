@@ -15,6 +15,8 @@ import dataclasses
 
 import numpy as np
 
+from cm3d.data import quality
+
 GAPS = (1, 2, 4)
 TRUNCATE = 40.0  # grey levels (0-255)
 MAX_PIXELS = 3000  # pixels sampled per frame
@@ -37,9 +39,9 @@ def warp_errors(seq, trajectories, masks=None, gaps=GAPS, max_pixels: int = MAX_
     """Per frame pair, the truncated mean grey difference under each trajectory (see the module
     docstring). trajectories: list of cam_to_world (S, 4, 4); masks: (S, H, W) dynamic (None: none).
     Returns (errors (pairs, len(trajectories)), paired pixels per pair (pairs,))."""
-    grey = np.asarray(seq.images, np.float64).mean(-1)
+    grey = quality.grey_levels(seq.images)  # a float64 mean of the channels, without a float64 copy of every channel
     S, H, W = grey.shape
-    d = np.asarray(seq.depth, np.float64)
+    d = np.asarray(seq.depth)
     c = np.asarray(seq.depth_conf)
     dyn = np.zeros((S, H, W), bool) if masks is None else np.asarray(masks, bool)
     K = np.asarray(seq.intrinsic, np.float64)
@@ -50,7 +52,7 @@ def warp_errors(seq, trajectories, masks=None, gaps=GAPS, max_pixels: int = MAX_
     iu, iv = u.astype(np.int64), v.astype(np.int64)
     errors, counts = [], []
     for t in range(S):
-        dt = d[t, iv, iu]
+        dt = d[t, iv, iu].astype(np.float64)
         src = np.isfinite(dt) & (dt > 0) & (c[t, iv, iu] > 0) & ~dyn[t, iv, iu]
         rays = np.linalg.solve(K[t], np.stack([u, v, np.ones_like(u)]))  # (3, N)
         X = rays * np.where(src, dt, 0.0)
