@@ -31,7 +31,8 @@ vectors on the files'. The depth frames turn nearly as the files say (0.97-0.98)
 less (0.92-0.96), with motions that reproject their matches far better than the files' poses do: the
 under-rotation that cm3d's windows show on the kitchen (docs/pipeline.md, stop 58). A last table says what
 such a bias alone costs: the folder's trajectory with every step turned by that ratio and nothing else
-changed, its ATE as 40-frame chunks stitched on their overlaps and as one chain.
+changed, its ATE as 40-frame chunks stitched on their overlaps and as one chain (the two agree: a chunk's
+overlap steps are the chunk before's, so its overlap places it exactly).
 
 JSON keys: f, cx, cy (the fit), report_median_px_X and report_within2_X for X in folder, published,
 published_plus, published_minus, fit; matches_tune, matches_report; rotation_ratio_colour,
