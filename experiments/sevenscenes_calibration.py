@@ -282,25 +282,27 @@ def main() -> None:
     print(f"\nhow far the frames turn between frame pairs, against the files' poses (pairs turning >= 1 deg)")
     print(f"{'frames':>9} {'(estimator)':>28} | {'angle ratio':>11} {'slope':>6} {'axis deg':>8} {'pairs':>5} "
           f"{'PnP px':>6} {'files px':>8}")
-    rot = {}
+    rot = {}  # span -> the summaries of rotation_summary (colour, folder_k, depth) and the colour pairs' px
     for span, data in ((TUNE, tune), (REPORT, report)):
         colour = colour_rotations(data, sevenscenes.KINECT_COLOUR, Kd)
-        folder_k = colour_rotations(data, folder_cam, Kd)
-        rot[span] = (rotation_summary(colour), rotation_summary(depth_rotations(data, Kd)),
-                     float(np.median([p[2] for p in colour])), float(np.median([p[3] for p in colour])),
-                     rotation_summary(folder_k))
-        for name, (ratio, slope, axis, k) in (("colour (SIFT + depth, PnP)", rot[span][0]),
-                                              ("... with the folder's K", rot[span][4]),
-                                              ("depth (point-to-plane ICP)", rot[span][1])):
-            px = f"{rot[span][2]:6.2f} {rot[span][3]:8.2f}" if name.startswith("colour") else ""
+        r = rot[span] = {"colour": rotation_summary(colour),
+                         "folder_k": rotation_summary(colour_rotations(data, folder_cam, Kd)),
+                         "depth": rotation_summary(depth_rotations(data, Kd)),
+                         "pnp_px": float(np.median([p[2] for p in colour])),
+                         "files_px": float(np.median([p[3] for p in colour]))}
+        for name, key in (("colour (SIFT + depth, PnP)", "colour"), ("... with the folder's K", "folder_k"),
+                          ("depth (point-to-plane ICP)", "depth")):
+            ratio, slope, axis, k = r[key]
+            px = f"{r['pnp_px']:6.2f} {r['files_px']:8.2f}" if key == "colour" else ""
             print(f"{span[0]:>4}-{span[1] - 2:<4} {name:>28} | {ratio:11.3f} {slope:6.3f} {axis:8.1f} {k:5d} {px:>6}")
-    rc, rd, pnp_px, files_px, rf = rot[REPORT]
+    rc, rd, rf = rot[REPORT]["colour"], rot[REPORT]["depth"], rot[REPORT]["folder_k"]
+    pnp_px, files_px = rot[REPORT]["pnp_px"], rot[REPORT]["files_px"]
     print("(px: median reprojection of PnP's inliers under PnP's pose and under the files' poses)")
     from cm3d.eval import metrics
 
     nums = sevenscenes.frame_numbers(folder)
     poses = np.array([sevenscenes.read_pose(folder / f"frame-{n:06d}.pose.txt") for n in nums])
-    ratios = (rc[1], rot[TUNE][0][1], rf[1], rot[TUNE][4][1])
+    ratios = (rc[1], rot[TUNE]["colour"][1], rf[1], rot[TUNE]["folder_k"][1])
     drift = {r: (float(metrics.ate(stitched(poses, r).astype(np.float32), poses.astype(np.float32))),
                  float(metrics.ate(turned_by(poses, r).astype(np.float32), poses.astype(np.float32))))
              for r in ratios}
