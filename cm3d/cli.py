@@ -157,8 +157,8 @@ def _load_inputs(paths, frames=None, prior_noise=None, seed=0, camera="folder"):
 
 def _run_chunks(chunks, cfg, bank, args, recorder=None):
     """The chunks of one long video: the pipeline over every chunk threading one memory bank, Sim(3)
-    overlap alignment, loop closures from recalls across chunks, the
-    Sim(3) pose graph, then the whole-trajectory refinement (:func:`cm3d.long_video.stitch_with_memory`).
+    overlap alignment, loop closures from recalls across chunks, the Sim(3) pose graph, then loop closures
+    measured in the images and the whole-trajectory refinement (:func:`cm3d.long_video.stitch_with_memory`).
     Returns (bank, whole-video result: refined trajectory, the stitched priors as its prior; facts)."""
     from cm3d import long_video as stitch
 
@@ -175,8 +175,8 @@ def _run_chunks(chunks, cfg, bank, args, recorder=None):
              "boundaries": [dataclasses.asdict(b) for b in st.boundaries],
              "pose_graph": {k: v for k, v in f.items()
                             if k not in ("loop_discrepancy", "loop_kept", "chained_transforms", "poses_stitched",
-                                         "frames")},
-             "frame_refinement": f["frames"],
+                                         "poses_stitched_prior", "frames", "image_loops")},
+             "image_loops": f["image_loops"], "frame_refinement": f["frames"],
              "loops": [{"chunk": lc.chunk, "other": lc.other, "frames": list(lc.frames),
                         "other_frames": list(lc.other_frames or ()), "transform": lc.transform,
                         "inliers": lc.inliers, "rmse": lc.rmse, "discrepancy": f["loop_discrepancy"][i],

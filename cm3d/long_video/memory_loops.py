@@ -15,8 +15,9 @@ import numpy as np
 
 from cm3d.data.sequence import Sequence
 from cm3d.long_video.frame_graph import FrameGraphConfig, refine_frames, rotation_noise
-from cm3d.long_video.fuse import merge_chunks
+from cm3d.long_video.fuse import merge_chunks, place_poses
 from cm3d.long_video.layout import StitchError, check_chunks, chunk_layout
+from cm3d.long_video.loops import LoopConfig, close_loops, motion_noise
 from cm3d.long_video.overlap import StitchConfig, align_boundaries, align_overlap
 from cm3d.long_video.pose_graph import LoopClosure, PoseGraphConfig, sim3_pose_graph
 from cm3d.long_video.stitch import StitchResult, centre_noise
@@ -98,20 +99,21 @@ def memory_config_for_chunks(height: int, width: int, chunk_lengths, **changes):
 def stitch_with_memory(chunks, overlap: int | None = None, config: StitchConfig = StitchConfig(),
                        pipeline_config=None, bank=None, graph: PoseGraphConfig = PoseGraphConfig(),
                        progress=None, refine: bool = True, frame_config: FrameGraphConfig = FrameGraphConfig(),
-                       results=None, observe=None) -> StitchResult:
+                       results=None, observe=None, loop_config: LoopConfig = LoopConfig()) -> StitchResult:
     """Stitch chunks with memory recall across them, then refine the whole trajectory.
 
     Run every chunk with one memory bank; align consecutive chunks' *refined* poses (each chunk's
     :attr:`~cm3d.pipeline.SequenceResult.poses`) on their shared frames; put loops and overlaps in the
-    Sim(3) pose graph (inconsistent loops left out); place and fuse the refined chunks; ``refine``:
-    :func:`cm3d.long_video.refine_frames`, kept when it passes its self-check.
+    Sim(3) pose graph (inconsistent loops left out); place and fuse the refined chunks; ``refine``: loop
+    closures measured in the images (:func:`cm3d.long_video.close_loops`, ``loop_config``), then
+    :func:`cm3d.long_video.refine_frames`, each kept when it passes its own check.
     pipeline_config: None for :func:`memory_config_for_chunks`; bank: a bank to start from; progress:
     optional ``(stage, done, total)``; results: per-chunk results of an earlier call (skips the runs);
     observe: passed to :func:`cm3d.pipeline.run` (called after each chunk).
     Returns :class:`StitchResult` (method ``"cm3d-memory"``, with ``loops``, ``bank``, ``results``;
     ``refinement`` has the pose graph's per-loop facts, ``poses_stitched`` (the refined chunks
     placed by the pose graph), ``poses_stitched_prior`` (the baseline: the chunks' priors placed by
-    their own overlaps) and ``frames``).
+    their own overlaps), ``image_loops`` (:func:`~cm3d.long_video.close_loops`' facts) and ``frames``).
     """
     from cm3d import pipeline
 
@@ -133,20 +135,23 @@ def stitch_with_memory(chunks, overlap: int | None = None, config: StitchConfig 
     G, facts = sim3_pose_graph(G0, A, loops, graph)
     seq, frame_chunk = merge_chunks(refined, ranges, overlaps, ts, G, "cm3d-memory")
     chained, _ = merge_chunks(refined, ranges, overlaps, ts, G0, "cm3d-memory")
-    stitched, frame_facts, kept = seq.cam_to_world, {"kept": False}, False
+    stitched, frame_facts, kept, loop_facts = seq.cam_to_world, {"kept": False}, False, {"kept": False}
     if refine:
         static = np.ones(seq.depth.shape, bool)
         for k, ((a, b), r) in enumerate(zip(ranges, results)):
             mine = np.flatnonzero(frame_chunk[a:b] == k)
             static[a + mine] = ~np.asarray(r.masks, bool)[mine]
+        placed = [place_poses(G[k], c.cam_to_world) for k, c in enumerate(refined)]
+        poses, loop_facts = close_loops(seq, motion_noise(placed, ranges), static, loop_config)
+        seq = seq.replace(cam_to_world=poses)
         poses, frame_facts = refine_frames(seq, static, frame_config, centre_noise(bounds),
                                            rotation_noise(refined, overlaps, G))
-        kept = frame_facts["kept"]
+        kept = frame_facts["kept"] or loop_facts["kept"]
         seq = seq.replace(cam_to_world=poses)
     facts = {**facts, "chained_transforms": G0, "pipeline_s": t_pipe, "windows": sum(len(r.windows) for r in results),
              "recalls": sum(int(w.accepted) for r in results for w in r.windows), "poses_stitched": stitched,
              "poses_stitched_prior": prior_seq.cam_to_world,
-             "frames": frame_facts}
+             "image_loops": loop_facts, "frames": frame_facts}
     return StitchResult(sequence=seq, poses_aligned=chained.cam_to_world, poses_refined=seq.cam_to_world,
                         chunk_transforms=G, ranges=ranges, frame_chunk=frame_chunk, boundaries=bounds,
                         refined=kept, refinement=facts, method="cm3d-memory",
