@@ -19,9 +19,10 @@ the same world renders one longer path once (the kitchen: all its frames); it is
 sequence with one prior and (b) as VGGT-like chunks, each with its own prior (own unknown scale and
 frame: :func:`cm3d.data.priors.segment_priors`), run by :func:`cm3d.long_video.stitch_with_memory`
 (what ``cm3d run c0.npz c1.npz ...`` runs: the pipeline per chunk, the chunks' refined poses
-stitched on their overlaps, the Sim(3) pose graph with recalled loops, the whole-trajectory
-refinement), with and without memory. ``stitched chunk priors``: the baseline, the chunks' priors
-stitched on their overlaps; ``refined chunks stitched``: cm3d before the whole-trajectory refinement.
+stitched on their overlaps, the Sim(3) pose graph with recalled loops, loop closures measured in the
+images, the whole-trajectory refinement), with and without memory. ``stitched chunk priors``: the
+baseline, the chunks' priors stitched on their overlaps; ``refined chunks stitched``: cm3d before the
+loops in the images and the whole-trajectory refinement.
 
 JSON keys per world ``W`` (own, held_out, kitchen): ``W_ate_prior``, ``W_ate_chained_nomem``, ``W_ate_nomem``,
 ``W_ate_chained``, ``W_ate`` (with memory), ``W_ratio`` (= ate / ate_prior, target <= 0.5),
@@ -29,7 +30,8 @@ JSON keys per world ``W`` (own, held_out, kitchen): ``W_ate_prior``, ``W_ate_cha
 ``W_windows_dropped``, ``W_global_kept``; chunked: ``W_chunk_ate_stitched_prior``,
 ``W_chunk_ate_stitched`` / ``W_chunk_ate_stitched_nomem`` (the refined chunks stitched),
 ``W_chunk_ate_one_sequence`` (b's video as one sequence), ``W_chunk_ate`` / ``W_chunk_ate_nomem``,
-``W_chunk_ratio`` (= chunk_ate / chunk_ate_stitched_prior, target <= 0.5), ``W_chunk_vs_one`` (=
+``W_chunk_image_loops`` / ``W_chunk_image_loops_nomem`` (image loops in the kept frame-level graph, 0
+when none), ``W_chunk_ratio`` (= chunk_ate / chunk_ate_stitched_prior, target <= 0.5), ``W_chunk_vs_one`` (=
 chunk_ate / chunk_ate_one_sequence, target <= 1.3); ``seconds``.
 """
 
@@ -116,6 +118,8 @@ def run_chunked(name: str, args) -> tuple[dict, list]:
         out[f"{name}_chunk_ate{tag}"] = ate(res.sequence.cam_to_world)
         out[f"{name}_chunk_ate_stitched{tag}"] = ate(res.refinement["poses_stitched"])
         out[f"{name}_chunk_seconds{tag}"] = dt
+        il = res.refinement["image_loops"]
+        out[f"{name}_chunk_image_loops{tag}"] = int(il.get("loops_used", 0)) if il["kept"] else 0
         if mem:
             out[f"{name}_chunk_ate_stitched_prior"] = ate(res.refinement["poses_stitched_prior"])
             out[f"{name}_chunk_recalls"] = int(res.refinement["recalls"])
