@@ -36,7 +36,8 @@ chunks' overlap alignments before the pose graph), ``ate_loop`` (+ the loop as t
 ``ate_loop_refined`` (its whole-trajectory refinement), ``ate_loop_stitch_refined`` (overlap stitching
 + refinement, no loop),
 ``loops_recalled``, ``loops_kept``, ``loop_improvement`` (= 1 − ate_loop / ate_loop_stitch),
-``loop_improvement_refined`` (= 1 − ate_loop_refined / ate_loop_stitch_refined), ``loop_pipeline_s``.
+``loop_improvement_refined`` (= 1 − ate_loop_refined / ate_loop_stitch_refined), ``loop_pipeline_s``,
+``image_loops`` (loops measured in the images in the kept frame-level graph; 0 when none).
 The drifting loop variant (``--loop-drift``, default 3: the priors' random-walk drift x 3, chosen
 before measuring) repeats it with ``ate_loopdrift_*`` keys. And what limits it:
 ``ate_loop_true_transforms`` (every chunk placed by its ground-truth Sim(3): the floor of any chunk
@@ -150,7 +151,9 @@ def run_loop(args, level, drift: float = 1.0):
            "loop_recalls": f["recalls"], "loop_windows": f["windows"], "loop_pipeline_s": f["pipeline_s"],
            "loop_time_s": t_mem, "loop_render_s": t_render, "loop_drift": drift,
            "loop_end_to_start_m": float(np.linalg.norm(gt.cam_to_world[-1, :3, 3] - gt.cam_to_world[0, :3, 3])),
-           "loop_pairs": [f"{lc.chunk}->{lc.other}" for lc in mem.loops], "loop_level": level}
+           "loop_pairs": [f"{lc.chunk}->{lc.other}" for lc in mem.loops], "loop_level": level,
+           # loop closures measured in the images (long_video.loops), in the kept frame-level graph
+           "image_loops": int(f["image_loops"].get("loops_used", 0)) if f["image_loops"]["kept"] else 0}
     if mem.loops:  # the loop across the most chunks (the camera back at its start)
         i = max(range(len(mem.loops)), key=lambda n: (mem.loops[n].chunk - mem.loops[n].other, -n))
         lc = mem.loops[i]
@@ -192,7 +195,8 @@ def print_loop(lp, title="loop variant"):
           f"{lp['loop_end_to_start_m']:.2f} m from its start): {lp['loops_recalled']} loop closures recalled across "
           f"chunks {lp['loop_pairs']} (kept by the consistency check: {lp['loops_kept']}; worst "
           f"discrepancy {lp['loop_discrepancy_max']:.1f} vs chi2 limit {lp['loop_limit']:.1f}; {lp['loop_recalls']} "
-          f"recalls in {lp['loop_windows']} windows; pipeline {lp['loop_pipeline_s']:.0f} s)\n")
+          f"recalls in {lp['loop_windows']} windows; pipeline {lp['loop_pipeline_s']:.0f} s); loop closures measured "
+          f"in the images in loop+refine: {lp['image_loops']}\n")
     head = (f"{'ATE naive':>10} {'overlap':>9} {'+ loop (memory)':>16} | {'vs overlap':>10} "
             f"|| {'overlap+refine':>14} {'loop+refine':>12} | {'vs':>7} || {'forced σx2':>11} {'true loop':>10} "
             f"{'true chunks':>11}")
