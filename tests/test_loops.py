@@ -110,3 +110,19 @@ def test_loop_config_is_checked():
         loops.LoopConfig(min_inliers=2)
     with pytest.raises(ValueError, match="LoopConfig"):
         loops.LoopConfig(max_distance=0.0)
+
+
+def test_motion_noise_from_two_chunks_sharing_frames():
+    rng = np.random.default_rng(3)
+    base = _circle(90)
+    sigma = np.array([2e-3, 2e-3, 2e-3, 1e-3, 1e-3, 1e-3])
+
+    def chunk(a, b):  # the base's motions over [a, b), each perturbed by the noise
+        P = [base[a]]
+        for f in range(a, b - 1):
+            P.append(P[-1] @ np.linalg.inv(base[f]) @ base[f + 1] @ np.asarray(se3.exp(rng.normal(0, sigma))))
+        return np.stack(P)
+
+    est = loops.motion_noise([chunk(0, 60), chunk(30, 90)], [(0, 60), (30, 90)])
+    np.testing.assert_allclose(est, sigma, rtol=0.5)
+    assert np.all(np.isnan(loops.motion_noise([chunk(0, 30), chunk(29, 60)], [(0, 30), (29, 60)])))

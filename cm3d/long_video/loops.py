@@ -196,10 +196,10 @@ def motion_noise(chunk_poses, ranges) -> np.ndarray:
             Pa, Pb = chunk_poses[k - 1], chunk_poses[k]
             ra = np.linalg.inv(Pa[f - a0]) @ Pa[f + 1 - a0]
             rb = np.linalg.inv(Pb[f - a1]) @ Pb[f + 1 - a1]
-            d.append(np.asarray(se3.log(jnp.asarray(np.linalg.inv(ra) @ rb))))
+            d.append(np.linalg.inv(ra) @ rb)
     if not d:
         return np.full(6, np.nan)
-    d = np.asarray(d, np.float64)
+    d = np.asarray(se3.log(jnp.asarray(np.stack(d))), np.float64)
     return 1.4826 * np.median(np.abs(d), 0) / np.sqrt(2.0)
 
 
