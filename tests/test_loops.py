@@ -126,3 +126,11 @@ def test_motion_noise_from_two_chunks_sharing_frames():
     est = loops.motion_noise([chunk(0, 60), chunk(30, 90)], [(0, 60), (30, 90)])
     np.testing.assert_allclose(est, sigma, rtol=0.5)
     assert np.all(np.isnan(loops.motion_noise([chunk(0, 30), chunk(29, 60)], [(0, 30), (29, 60)])))
+
+
+def test_host_se3_log_equals_the_jax_one():
+    xi = np.random.default_rng(4).normal(0, 1, (50, 6)) * np.array([1, 1, 1, 0.8, 0.8, 0.8])
+    xi[:5, 3:] *= 1e-4  # near the identity: the series
+    T = np.asarray(se3.exp(xi), np.float64)
+    np.testing.assert_allclose(loops.se3_log(T), np.asarray(se3.log(T), np.float64), atol=2e-5)
+    np.testing.assert_allclose(loops.se3_log(T), xi, atol=2e-5)

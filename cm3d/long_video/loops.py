@@ -35,7 +35,7 @@ from scipy.special import gammainc
 
 from cm3d.data.sequence import Sequence
 from cm3d.long_video.frame_graph import _CHI2_1_MEDIAN
-from cm3d.ops import keypoints, robust, se3
+from cm3d.ops import keypoints, robust
 from cm3d.solvers import factors, lm
 
 PNP_SAMPLE = 4  # points a PnP hypothesis is fitted to (inliers by construction, not evidence)
@@ -199,26 +199,25 @@ def motion_noise(chunk_poses, ranges) -> np.ndarray:
             d.append(np.linalg.inv(ra) @ rb)
     if not d:
         return np.full(6, np.nan)
-    d = np.asarray(se3.log(jnp.asarray(np.stack(d))), np.float64)
+    d = se3_log(np.stack(d))
     return 1.4826 * np.median(np.abs(d), 0) / np.sqrt(2.0)
 
 
 def _graph(P, ia, ib, meas, sig, w):
+    """:func:`solve_loops`' graph (host arrays in, float32 leaves; built from NumPy so that no eager JAX
+    operation compiles per size): between factors only, the first frame fixed (the gauge)."""
     N = P.shape[0]
-    f = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+    f = lambda a: jnp.asarray(np.asarray(a, np.float32))  # noqa: E731
+    i32 = lambda a: jnp.asarray(np.asarray(a, np.int32))  # noqa: E731
     fixed = np.zeros(N, bool)
-    fixed[0] = True  # the gauge: the first frame stays where the stitch put it
+    fixed[0] = True
     return factors.FactorGraph(
-        intrinsics=jnp.tile(jnp.eye(3), (N, 1, 1)),
-        projection=factors.ProjectionFactors(pose_idx=jnp.zeros(1, jnp.int32), point_idx=jnp.zeros(1, jnp.int32),
-                                             z=jnp.zeros((1, 2)), sigma=jnp.ones(1), weight=jnp.zeros(1),
-                                             memory=jnp.zeros(1, bool)),
-        prior=factors.PriorFactors(pose_idx=jnp.zeros(1, jnp.int32), target=f(P[:1]), sigma=jnp.ones((1, 6)),
-                                   weight=jnp.zeros(1)),
-        motion=factors.MotionFactors(idx_a=jnp.asarray(ia, jnp.int32), idx_b=jnp.asarray(ib, jnp.int32),
-                                     measured=f(meas), sigma=f(sig), weight=f(w)),
-        huber_k=jnp.asarray(np.inf, jnp.float32), memory_alpha=jnp.asarray(0.5, jnp.float32),
-        pose_fixed=jnp.asarray(fixed))
+        intrinsics=f(np.broadcast_to(np.eye(3), (N, 3, 3))),
+        projection=factors.ProjectionFactors(pose_idx=i32([0]), point_idx=i32([0]), z=f(np.zeros((1, 2))),
+                                             sigma=f([1.0]), weight=f([0.0]), memory=jnp.asarray(np.zeros(1, bool))),
+        prior=factors.PriorFactors(pose_idx=i32([0]), target=f(P[:1]), sigma=f(np.ones((1, 6))), weight=f([0.0])),
+        motion=factors.MotionFactors(idx_a=i32(ia), idx_b=i32(ib), measured=f(meas), sigma=f(sig), weight=f(w)),
+        huber_k=f(np.inf), memory_alpha=f(0.5), pose_fixed=jnp.asarray(fixed))
 
 
 @functools.partial(jax.jit, static_argnames="iterations")
@@ -228,12 +227,32 @@ def _solve(graph, poses, iterations: int):
     return res.params.poses
 
 
+def se3_log(T) -> np.ndarray:
+    """SE(3) logarithm on the host (NumPy float64), (..., 4, 4) -> (..., 6), translation first: the same map as
+    :func:`cm3d.ops.se3.log` (jaxlie's order), without compiling a JAX program per shape."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.asarray(T, np.float64)
+    shape = T.shape[:-2]
+    T = T.reshape(-1, 4, 4)
+    w = Rotation.from_matrix(T[:, :3, :3]).as_rotvec()
+    t = T[:, :3, 3]
+    th2 = np.sum(w * w, -1, keepdims=True)
+    th = np.sqrt(th2)
+    small = th2 < 1e-4
+    with np.errstate(divide="ignore", invalid="ignore"):
+        closed = (1.0 - th * np.sin(th) / (2.0 * (1.0 - np.cos(th)))) / th2
+    c = np.where(small, 1.0 / 12.0 + th2 / 720.0 + th2 * th2 / 30240.0, closed)
+    wt = np.cross(w, t)
+    return np.concatenate([t - 0.5 * wt + c * np.cross(w, wt), w], -1).reshape(shape + (6,))
+
+
 def _loop_residuals(P, pairs, T):
     """Whitening-free residuals (L, 6) of loops ``T`` (``T_i^{-1} T_j``) at poses ``P``: log(T^{-1} P_i^{-1} P_j)."""
     if len(pairs) == 0:
         return np.zeros((0, 6))
     rel = np.linalg.inv(P[pairs[:, 0]]) @ P[pairs[:, 1]]
-    return np.asarray(se3.log(jnp.asarray(np.linalg.inv(T) @ rel)), np.float64)
+    return se3_log(np.linalg.inv(T) @ rel)
 
 
 def solve_loops(P, loops, T_loops, sigma_motion, sigma_loop, weight=None, iterations: int = 30,
@@ -242,14 +261,14 @@ def solve_loops(P, loops, T_loops, sigma_motion, sigma_loop, weight=None, iterat
     ``sigma_motion`` (6,), translation first) and the loops ``(i, j)`` (L, 2) measuring ``T_i^{-1} T_j`` as
     ``T_loops`` (L, 4, 4), with noise ``sigma_loop`` (6,) (``weight`` (L,): 0 leaves a loop out); the first
     frame fixed (the gauge); ``iterations`` LM steps (:func:`cm3d.solvers.lm.solve`, dense).
-    Factors are padded to ``pad_to`` slots (one compiled program for nearby sizes). Returns poses
-    (S, 4, 4) float64."""
+    Factors are padded to ``pad_to`` slots, at least to a multiple of 64 (one compiled program for nearby
+    sizes). Returns poses (S, 4, 4) float64."""
     P = np.asarray(P, np.float64)
     S = P.shape[0]
     loops = np.asarray(loops, np.int64).reshape(-1, 2)
     L = len(loops)
     Q = (S - 1) + L
-    Qp = max(Q, pad_to or 0)
+    Qp = max(Q, pad_to or 0, -(-Q // 64) * 64)
     ia, ib = np.zeros(Qp, np.int64), np.zeros(Qp, np.int64)
     meas, sig, wt = np.tile(np.eye(4), (Qp, 1, 1)), np.ones((Qp, 6)), np.zeros(Qp)
     ia[:S - 1], ib[:S - 1], meas[:S - 1] = np.arange(S - 1), np.arange(1, S), np.linalg.inv(P[:-1]) @ P[1:]
@@ -293,7 +312,7 @@ def _loop_leverage(P, loops, T, sigma_motion, sigma_loop, weight):
     return np.clip(h, 0.0, 1.0)
 
 
-def _vce_solve(P, loops, T, sigma_motion, weight, cfg: LoopConfig, pad: int):
+def _vce_solve(P, loops, T, sigma_motion, weight, cfg: LoopConfig):
     """:func:`solve_loops` with the loops' noise estimated (robust variance components, per translation and
     rotation: the median of ``r² / (1 - h)`` (``h`` the leverage, :func:`_loop_leverage`) against χ²_1's
     median; started at the loops' misfit to ``P``) and loops beyond ``χ²_6(cfg.outlier_quantile)`` dropped,
@@ -305,7 +324,7 @@ def _vce_solve(P, loops, T, sigma_motion, weight, cfg: LoopConfig, pad: int):
     sl = np.maximum(np.sqrt(np.mean(r0 ** 2, 0)), sigma_motion)
     limit = float(robust.chi2_quantile(cfg.outlier_quantile, 6))
     for it in range(cfg.vce_iterations + 1):
-        sol = solve_loops(P, loops, T, sigma_motion, sl, w, cfg.iterations, pad)
+        sol = solve_loops(P, loops, T, sigma_motion, sl, w, cfg.iterations)
         if it == cfg.vce_iterations:
             break
         r = _loop_residuals(sol, loops, T)
@@ -371,15 +390,14 @@ def fit_loops(P, loops, T, sigma_motion, scale: float, cfg: LoopConfig = LoopCon
         return P, {**facts, "reason": f"no motion noise (chunks sharing fewer than 2 frames): {sigma_motion}"}
     # a floor (1e-4 of the median depth, 1e-4 rad): chunks that agree exactly would weight a motion infinitely
     sigma_motion = np.maximum(sigma_motion, [1e-4 * med] * 3 + [1e-4] * 3)
-    pad = -(-(P.shape[0] - 1 + L) // 64) * 64
     held = np.arange(L) % cfg.holdout == cfg.holdout - 1
-    part, _, sl = _vce_solve(P, loops, T, sigma_motion, (~held).astype(float), cfg, pad)
+    part, _, sl = _vce_solve(P, loops, T, sigma_motion, (~held).astype(float), cfg)
     white = lambda X: float(np.median(np.sum((_loop_residuals(X, loops[held], T[held]) / sl) ** 2, 1)))  # noqa: E731
     before, after = white(P), white(part)
     facts.update(holdout_before=before, holdout_after=after)
     if not after < before:
         return P, {**facts, "reason": "held-out loops agree better with the stitch"}
-    sol, w, sl = _vce_solve(P, loops, T, sigma_motion, np.ones(L), cfg, pad)
+    sol, w, sl = _vce_solve(P, loops, T, sigma_motion, np.ones(L), cfg)
     # the loops may bend the chunks' motions only within their noise: most motions beyond χ²_6(q) means the
     # loops contradict the chunks (and one another), not that they correct a drift
     rel = np.linalg.inv(P[:-1]) @ P[1:]
