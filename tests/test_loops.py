@@ -128,9 +128,12 @@ def test_motion_noise_from_two_chunks_sharing_frames():
     assert np.all(np.isnan(loops.motion_noise([chunk(0, 30), chunk(29, 60)], [(0, 30), (29, 60)])))
 
 
-def test_host_se3_log_equals_the_jax_one():
+def test_host_se3_log_and_exp_equal_the_jax_ones():
     xi = np.random.default_rng(4).normal(0, 1, (50, 6)) * np.array([1, 1, 1, 0.8, 0.8, 0.8])
     xi[:5, 3:] *= 1e-4  # near the identity: the series
     T = np.asarray(se3.exp(xi), np.float64)
     np.testing.assert_allclose(loops.se3_log(T), np.asarray(se3.log(T), np.float64), atol=2e-5)
     np.testing.assert_allclose(loops.se3_log(T), xi, atol=2e-5)
+    xi = np.array([0.3, -0.2, 0.5, 0.4, -0.7, 0.2])
+    np.testing.assert_allclose(loops._se3_exp(xi), np.asarray(se3.exp(xi), np.float64), atol=1e-6)
+    np.testing.assert_allclose(loops._se3_exp(xi * 1e-4), np.asarray(se3.exp(xi * 1e-4), np.float64), atol=1e-7)

@@ -141,21 +141,44 @@ def _lift(uv, depth, K):
     return np.stack([(uv[:, 0] - K[0, 2]) / K[0, 0] * z, (uv[:, 1] - K[1, 2]) / K[1, 1] * z, z], 1), ok
 
 
-def measure_loops(seq: Sequence, pairs, static=None, cfg: LoopConfig = LoopConfig()):
-    """Relative poses of frame pairs ``(i, j)`` measured in their images (host, OpenCV).
-
-    Returns (accepted (E,) bool, T (E, 4, 4) ``T_i^{-1} T_j`` in the sequence's units (its depth), facts
-    per pair: dict of arrays ``inliers``, ``matches``, ``chance``, ``log_nfa``)."""
+def _pnp(X, uv, K, cfg: LoopConfig, tests: int):
+    """PnP + RANSAC of 3D points ``X`` (camera a) onto pixels ``uv`` (camera b), LM on the inliers:
+    (T (4, 4) camera a -> camera b or None, inliers, chance inliers, log10 NFA)."""
     import cv2
 
+    if len(X) < cfg.min_inliers:
+        return None, 0, 0.0, float(np.log10(tests))
+    found, rv, tv, inl = cv2.solvePnPRansac(X, uv, K, None, reprojectionError=cfg.reproj_px,
+                                            iterationsCount=cfg.ransac_iterations, flags=cv2.SOLVEPNP_EPNP)
+    if not found or inl is None or len(inl) < PNP_SAMPLE:
+        return None, 0, 0.0, float(np.log10(tests))
+    rv, tv = cv2.solvePnPRefineLM(X[inl[:, 0]], uv[inl[:, 0]], K, None, rv, tv)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = cv2.Rodrigues(rv)[0], tv.ravel()
+    if not np.all(np.isfinite(T)):
+        return None, 0, 0.0, float(np.log10(tests))
+    return (T, *pnp_log_nfa(X, uv, K, T, cfg.reproj_px, tests))
+
+
+def measure_loops(seq: Sequence, pairs, static=None, cfg: LoopConfig = LoopConfig()):
+    """Relative poses of frame pairs ``(i, j)`` measured in their images (host, OpenCV), both ways: j's
+    matched keypoints lifted with j's depth and posed in i's image by PnP, and i's lifted and posed in
+    j's. A pair is accepted when both poses pass the chance test (:func:`pnp_log_nfa`, at least
+    ``cfg.min_inliers`` inliers); its relative pose is their midpoint on SE(3) (each direction's error is
+    its own depth's and keypoints').
+
+    Returns (accepted (E,) bool, T (E, 4, 4) ``T_i^{-1} T_j`` in the sequence's units (its depth), facts
+    per pair: dict of arrays ``inliers``, ``matches``, ``chance``, ``log_nfa`` (the weaker direction's),
+    ``disagreement_deg`` (the two directions' rotation difference))."""
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
     E = len(pairs)
     det = {}
-    tests = max(E, 1) * cfg.ransac_iterations
+    tests = max(E, 1) * cfg.ransac_iterations * 2
     out_T = np.tile(np.eye(4), (E, 1, 1))
     acc = np.zeros(E, bool)
-    facts = {k: np.zeros(E) for k in ("inliers", "matches", "chance", "log_nfa")}
+    facts = {k: np.zeros(E) for k in ("inliers", "matches", "chance", "log_nfa", "disagreement_deg")}
     facts["log_nfa"][:] = np.log10(tests)
+    facts["disagreement_deg"][:] = np.nan
     for e, (i, j) in enumerate(pairs):
         for f in (i, j):
             if f not in det:
@@ -163,23 +186,19 @@ def measure_loops(seq: Sequence, pairs, static=None, cfg: LoopConfig = LoopConfi
                 det[f] = keypoints.detect(seq.images[f], cfg.keypoints, m)
         mt = keypoints.match_detections(det[i], det[j], cfg.keypoints)
         uv_i, uv_j = mt.uv0[mt.valid].astype(np.float64), mt.uv1[mt.valid].astype(np.float64)
-        X, ok = _lift(uv_j, seq.depth[j], seq.intrinsic[j])
-        X, uv = X[ok], uv_i[ok]
-        facts["matches"][e] = len(X)
-        if len(X) < cfg.min_inliers:
+        Xj, ok_j = _lift(uv_j, seq.depth[j], seq.intrinsic[j])
+        Xi, ok_i = _lift(uv_i, seq.depth[i], seq.intrinsic[i])
+        fwd = _pnp(Xj[ok_j], uv_i[ok_j], np.asarray(seq.intrinsic[i], np.float64), cfg, tests)  # cam j -> cam i
+        bwd = _pnp(Xi[ok_i], uv_j[ok_i], np.asarray(seq.intrinsic[j], np.float64), cfg, tests)  # cam i -> cam j
+        facts["matches"][e] = min(ok_i.sum(), ok_j.sum())
+        weak = max((fwd, bwd), key=lambda r: r[3])
+        facts["inliers"][e], facts["chance"][e], facts["log_nfa"][e] = weak[1], weak[2], weak[3]
+        if fwd[0] is None or bwd[0] is None:
             continue
-        K = np.asarray(seq.intrinsic[i], np.float64)
-        found, rv, tv, inl = cv2.solvePnPRansac(X, uv, K, None, reprojectionError=cfg.reproj_px,
-                                                iterationsCount=cfg.ransac_iterations, flags=cv2.SOLVEPNP_EPNP)
-        if not found or inl is None or len(inl) < PNP_SAMPLE:
-            continue
-        rv, tv = cv2.solvePnPRefineLM(X[inl[:, 0]], uv[inl[:, 0]], K, None, rv, tv)
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = cv2.Rodrigues(rv)[0], tv.ravel()
-        k, lam, lnfa = pnp_log_nfa(X, uv, K, T, cfg.reproj_px, tests)
-        facts["inliers"][e], facts["chance"][e], facts["log_nfa"][e] = k, lam, lnfa
-        out_T[e] = T
-        acc[e] = (k >= cfg.min_inliers) & (lnfa < cfg.max_log_nfa) & bool(np.all(np.isfinite(T)))
+        d = se3_log(np.linalg.inv(fwd[0]) @ np.linalg.inv(bwd[0]))
+        facts["disagreement_deg"][e] = float(np.degrees(np.linalg.norm(d[3:])))
+        out_T[e] = fwd[0] @ _se3_exp(0.5 * d)
+        acc[e] = weak[1] >= cfg.min_inliers and weak[3] < cfg.max_log_nfa
     return acc, out_T, facts
 
 
@@ -245,6 +264,24 @@ def se3_log(T) -> np.ndarray:
     c = np.where(small, 1.0 / 12.0 + th2 / 720.0 + th2 * th2 / 30240.0, closed)
     wt = np.cross(w, t)
     return np.concatenate([t - 0.5 * wt + c * np.cross(w, wt), w], -1).reshape(shape + (6,))
+
+
+def _se3_exp(xi) -> np.ndarray:
+    """SE(3) exponential on the host (NumPy float64), (6,) translation first -> (4, 4): the inverse of
+    :func:`se3_log`."""
+    from scipy.spatial.transform import Rotation
+
+    v, w = np.asarray(xi[:3], np.float64), np.asarray(xi[3:], np.float64)
+    th2 = float(w @ w)
+    th = np.sqrt(th2)
+    if th2 < 1e-4:
+        b, c = 0.5 - th2 / 24.0 + th2 * th2 / 720.0, 1.0 / 6.0 - th2 / 120.0 + th2 * th2 / 5040.0
+    else:
+        b, c = (1.0 - np.cos(th)) / th2, (th - np.sin(th)) / (th2 * th)
+    wv = np.cross(w, v)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = Rotation.from_rotvec(w).as_matrix(), v + b * wv + c * np.cross(w, wv)
+    return T
 
 
 def _loop_residuals(P, pairs, T):
