@@ -8,10 +8,10 @@ two frames' images measure their relative pose directly (host side, OpenCV; entr
 * :func:`loop_candidates`: frame pairs at least ``min_gap`` frames apart whose current poses look at
   the same place (centres within ``max_distance`` x the median depth, optical axes within
   ``max_angle_deg``), at most one per later frame, spread over the video;
-* :func:`measure_loops`: SIFT matches of each pair, the later frame's keypoints lifted with its
-  depth, PnP + RANSAC (``cv2.solvePnPRansac``, then LM on the inliers); a loop is accepted by an
-  a-contrario test (:func:`pnp_log_nfa`: its inliers against the count the same pose gets with the
-  matches' image ends shuffled);
+* :func:`measure_loops`: SIFT matches of each pair, both ways: each frame's keypoints lifted with its
+  depth and posed in the other's image by PnP + RANSAC (``cv2.solvePnPRansac``, then LM on the
+  inliers); a loop is accepted when both pass an a-contrario test (:func:`pnp_log_nfa`: the inliers
+  against the count the same pose gets with the matches' image ends shuffled), and is their midpoint;
 * :func:`solve_loops`: one SE(3) pose per frame, the stitched trajectory's consecutive motions
   (noise from the chunks' disagreement on their shared frames, :func:`motion_noise`) and the loops as
   between factors, solved by :func:`cm3d.solvers.lm.solve`; the loops' noise estimated, inconsistent
