@@ -27,7 +27,6 @@ from cm3d.solvers import factors
 from cm3d.solvers.chain_pose_graph import solve_chain
 from cm3d.solvers.sim3_irls import robust_sim3
 
-_CHI2_1_MEDIAN = 0.45493642311957283  # median of χ²_1, exact (Wilson–Hilferty is 3 % off at dof 1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -218,12 +217,8 @@ def refine_frames(seq: Sequence, static=None, cfg: FrameGraphConfig = FrameGraph
             break
         rp, hp, rm, hm = (np.asarray(x, np.float64) for x in (sol.e_prior, sol.h_prior, sol.e_motion, sol.h_motion))
         sm_old = sm.copy()
-        for arr, hh, sig, ww in ((rp, hp, sp, np.arange(N) < S), (rm, hm, sm, w)):
-            for sl in (slice(0, 3), slice(3, 6)):  # translation, rotation
-                used = (ww > 0)[:, None] & (hh[:, sl] < 1.0 - 1e-6)
-                if np.sum(used) > 3:  # robust: median of r² / (1 − h) against χ²_1's median
-                    v = (arr[:, sl] ** 2 / np.maximum(1.0 - hh[:, sl], 1e-6))[used]
-                    sig[sl] *= np.sqrt(float(np.median(v)) / _CHI2_1_MEDIAN)
+        sp = robust.variance_components(rp, hp, np.arange(N) < S, sp)
+        sm = robust.variance_components(rm, hm, w > 0, sm)
         # drop implausible motion factors (residuals whitened by the updated sigmas)
         w = np.where(np.sum((rm * sm_old / sm) ** 2, 1) > limit, 0.0, w)
     refined = np.asarray(sol.poses, np.float64)[:S]

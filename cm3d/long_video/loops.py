@@ -34,12 +34,11 @@ import numpy as np
 from scipy.special import gammainc
 
 from cm3d.data.sequence import Sequence
-from cm3d.long_video.frame_graph import _CHI2_1_MEDIAN
 from cm3d.ops import keypoints, robust
 from cm3d.solvers import factors, lm
 
 PNP_SAMPLE = 4  # points a PnP hypothesis is fitted to (inliers by construction, not evidence)
-SHUFFLES = 8
+SHUFFLES = 8  # cyclic shifts of the image ends (as the memory's chance test)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -219,7 +218,7 @@ def motion_noise(chunk_poses, ranges) -> np.ndarray:
     if not d:
         return np.full(6, np.nan)
     d = se3_log(np.stack(d))
-    return 1.4826 * np.median(np.abs(d), 0) / np.sqrt(2.0)
+    return robust.MAD_TO_SIGMA * np.median(np.abs(d), 0) / np.sqrt(2.0)
 
 
 def _graph(P, ia, ib, meas, sig, w):
@@ -366,13 +365,8 @@ def _vce_solve(P, loops, T, sigma_motion, weight, cfg: LoopConfig):
             break
         r = _loop_residuals(sol, loops, T)
         h = _loop_leverage(sol, loops, T, sigma_motion, sl, w)
-        used = w > 0
-        sl_old = sl.copy()
-        for part in (slice(0, 3), slice(3, 6)):
-            ok = used[:, None] & (h[:, part] < 1.0 - 1e-6)
-            if np.sum(ok) > 3:
-                v = (r[:, part] ** 2 / np.maximum(1.0 - h[:, part], 1e-6))[ok] / sl[part][np.nonzero(ok)[1]] ** 2
-                sl[part] *= np.sqrt(float(np.median(v)) / _CHI2_1_MEDIAN)
+        sl_old = sl
+        sl = robust.variance_components(r / sl, h, w > 0, sl)
         w_old, w = w, np.where(np.sum((r / sl_old) ** 2, 1) > limit, 0.0, np.asarray(weight, np.float64))
         if np.all(np.abs(np.log(sl / sl_old)) < 0.05) and np.array_equal(w, w_old):
             break  # converged: the solve above is the estimate's

@@ -3,13 +3,15 @@
 One meaning each for the package: :func:`masked_median` is the ordinary median (mean of the two
 middle values for an even count), :func:`masked_median_low` the low median (the lower of the two,
 always a sample: Python's ``statistics.median_low``; the motion cues are tuned on it); :data:`MAD_TO_SIGMA` turns a median absolute deviation into a
-Gaussian σ; :func:`chi2_quantile` is jittable (Wilson–Hilferty, ~1 % for dof >= 3).
+Gaussian σ; :func:`chi2_quantile` is jittable (Wilson–Hilferty, ~1 % for dof >= 3);
+:func:`variance_components` is the pose graphs' host-side robust noise estimate.
 """
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 MAD_TO_SIGMA = 1.4826  # σ = 1.4826 · MAD for Gaussian data (1 / Φ⁻¹(3/4))
 
@@ -84,6 +86,23 @@ def chi2_quantile(q, dof):
     z = jax.scipy.special.ndtri(jnp.asarray(q, jnp.result_type(float)))
     k = jnp.maximum(jnp.asarray(dof, z.dtype), 1.0)
     return k * (1.0 - 2.0 / (9.0 * k) + z * jnp.sqrt(2.0 / (9.0 * k))) ** 3
+
+
+CHI2_1_MEDIAN = 0.45493642311957283  # median of χ²_1, exact (Wilson–Hilferty is 3 % off at dof 1)
+
+
+def variance_components(res, lev, use, sig):
+    """Robust variance components of a pose graph's factor group (host, NumPy): ``sig`` (6,) scaled per
+    block (translation, rotation) by ``sqrt(median(r² / (1 − h)) / median(χ²_1))`` of the whitened
+    residuals ``res`` (n, 6) with leverages ``lev`` (n, 6) on rows ``use`` (n,) bool (entries of leverage
+    ~1 left out; a block with 3 or fewer entries keeps its sigma). Returns the new sigmas (6,)."""
+    sig = np.array(sig, np.float64)
+    for sl in (slice(0, 3), slice(3, 6)):
+        ok = np.asarray(use, bool)[:, None] & (lev[:, sl] < 1.0 - 1e-6)
+        if np.sum(ok) > 3:
+            v = (res[:, sl] ** 2 / np.maximum(1.0 - lev[:, sl], 1e-6))[ok]
+            sig[sl] *= np.sqrt(max(float(np.median(v)), 1e-12) / CHI2_1_MEDIAN)
+    return sig
 
 
 def segment_median(x, group, valid, num_groups: int):

@@ -49,7 +49,6 @@ from cm3d.solvers import factors
 from cm3d.solvers.chain_pose_graph import solve_chain
 from cm3d.solvers.factors import FactorGraph, MotionFactors, PriorFactors, ProjectionFactors
 
-_CHI2_1_MEDIAN = 0.45493642311957283  # median of χ²_1
 _CHI2_6_MEDIAN = 5.348120627447122  # median of χ²_6
 _MAD_EFFICIENCY = 0.37  # the MAD's asymptotic efficiency as a scale estimate at the normal (0.367)
 
@@ -121,18 +120,6 @@ def _linked_runs(link, a: int, b: int):
         out.append((i, j))
         i = j
     return out
-
-
-def _vce(res, lev, use, sig):
-    """Scale ``sig`` (6,) per block (translation, rotation) by the robust variance component of the
-    whitened residuals ``res`` (n, 6) with leverages ``lev`` on rows ``use``."""
-    sig = sig.copy()
-    for sl in (slice(0, 3), slice(3, 6)):
-        ok = use[:, None] & (lev[:, sl] < 1.0 - 1e-6)
-        if np.sum(ok) > 3:
-            v = (res[:, sl] ** 2 / np.maximum(1.0 - lev[:, sl], 1e-6))[ok]
-            sig[sl] *= np.sqrt(max(float(np.median(v)), 1e-12) / _CHI2_1_MEDIAN)
-    return sig
 
 
 @jax.jit
@@ -232,7 +219,8 @@ def global_refine(prior, poses, windows, cfg: GlobalGraphConfig = GlobalGraphCon
         if rnd == cfg.vce_iterations:
             break
         rp, hp, rm, hm = (np.asarray(x, np.float64) for x in (sol.e_prior, sol.h_prior, sol.e_motion, sol.h_motion))
-        sp_new, sm_new = _vce(rp, hp, frame_real, sp), _vce(rm, hm, w > 0, sm)
+        sp_new = robust.variance_components(rp, hp, frame_real, sp)
+        sm_new = robust.variance_components(rm, hm, w > 0, sm)
         e2 = np.sum((rm * sm / sm_new) ** 2, 1)  # whitened by the updated sigmas
         sp, sm = sp_new, sm_new
         # usable motion factors: within χ²₆ in the solve and against the priors' own relative motion
