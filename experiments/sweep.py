@@ -47,7 +47,7 @@ def _parse():
     ap.add_argument("--out", default="sweep_out")
     ap.add_argument("--quick", action="store_true",
                     help="2 seeds x 2 levels of 6 frames, vmap batching on 2 emulated devices, with --check, "
-                         "no throughput runs")
+                         "no throughput runs, one call of the batch (compile_s: compile + that run)")
     ap.add_argument("--json", default=None, metavar="PATH")
     return ap.parse_args()
 

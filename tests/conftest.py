@@ -68,7 +68,7 @@ SLOW_FIRST = ("test_sweep.py", "test_experiments.py", "test_cli.py", "test_rerun
 # each, test_rerun's ``demo`` 15 s each, in one run). Modules of one unit share it: test_rerun's demo
 # and test_pipeline's memory tests compile the same 48x64 memory program (82 s and 52 s when the two
 # ran at once on the two workers); one after the other, the second reads it from JAX's cache.
-# The same holds for modules whose tests jit one function with one configuration each (stop 61, a suite run
+# The same holds for modules whose tests jit the same function with the same configuration (stop 61, a run
 # with JAX's compile log: test_recall_real's kitchen fixture, ``_prepare`` and ``identify`` compiled on both
 # workers at the same second, 10 s twice; test_motion's and test_occlusion's ``motion_cues``, test_icp's
 # ``icp`` and test_lm's ``solve`` twice for the same configuration).
