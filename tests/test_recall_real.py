@@ -100,34 +100,36 @@ def test_chance_test_far_beyond_chance_accepts_alone(kitchen_visits):
     """The acceptance model is a fit to one synthetic generator; a pose far beyond chance (log10 NFA
     below ``accept_log_nfa``) is accepted even when the model says no, a pair that shares nothing is
     not, and neither is a window whose overlap with the map (ICP fitness) is under ``min_overlap`` or
-    whose keypoint inliers fix its pose less well than ``alone_max_placement_error``."""
-    seqs, entries = kitchen_visits
+    whose keypoint inliers fix its pose less well than ``alone_max_placement_error``. (identify's
+    decision is ``memory.accepts`` of its evidence: here asked again under changed thresholds, so
+    that each does not compile a verification of its own.)"""
+    _, entries = kitchen_visits
+    decide = jax.jit(lambda bank, out, c: memory.accepts(bank, out.candidate, out.verification,
+                                                         memory.acceptance_score(out.features, c), out.log_nfa,
+                                                         out.placement_error, c), static_argnums=2)
+    runs = {pair: (_bank(entries[pair[0]]), _identify(_bank(entries[pair[0]]), entries[pair[1]],
+                                                      jax.random.PRNGKey(0))) for pair in (REVISIT, DISTINCT)}
+    for bank, out in runs.values():  # identify's own decision is this function's at CFG
+        assert bool(decide(bank, out, CFG)) == bool(out.verification.accepted)
     # (the placement gate open: this revisit's inliers fix its pose to 0.028 rad, just above the default's
     # 0.026; the gate is checked below)
     model_says_no = dataclasses.replace(CFG, accept_bias=-100.0, alone_max_placement_error=float("inf"))
-    ident = jax.jit(lambda bank, e, k: memory.identify(bank, e, model_says_no, k))
-    for (a, b), right in ((REVISIT, True), (DISTINCT, False)):
-        out = ident(_bank(entries[a]), entries[b], jax.random.PRNGKey(0))
-        # the model says no; or there is no 2D candidate to ask it about (no score)
-        assert float(out.acceptance) < 0 or (np.isnan(float(out.acceptance)) and int(out.candidate) == -1)
-        assert int(out.map_id) == (0 if right else -1), (a, b, float(out.log_nfa))
-        assert bool(out.verification.accepted) == (float(out.log_nfa) < CFG.accept_log_nfa)
+    for pair, right in ((REVISIT, True), (DISTINCT, False)):
+        bank, out = runs[pair]
+        # the model says no; or there is no 2D candidate to ask it about
+        assert float(memory.acceptance_score(out.features, model_says_no)) < 0 or int(out.candidate) == -1
+        assert bool(decide(bank, out, model_says_no)) == right, (pair, float(out.log_nfa))
+        assert right == (float(out.log_nfa) < CFG.accept_log_nfa)
     # ... but only a window that shares its surface with the map: the same revisit, asked for an overlap
     # (ICP fitness) above its own, is a new place
-    a, b = REVISIT
-    fitness = float(_identify(_bank(entries[a]), entries[b], jax.random.PRNGKey(0)).verification.fitness)
-    assert CFG.min_overlap <= fitness < 1.0
-    no_overlap = dataclasses.replace(model_says_no, min_overlap=min(1.0, fitness + 0.01))
-    out = jax.jit(lambda bank, e, k: memory.identify(bank, e, no_overlap, k))(_bank(entries[a]), entries[b],
-                                                                              jax.random.PRNGKey(0))
-    assert int(out.map_id) == -1 and float(out.log_nfa) < CFG.accept_log_nfa
+    bank, out = runs[REVISIT]
+    fitness = float(out.verification.fitness)
+    assert CFG.min_overlap <= fitness < 1.0 and float(out.log_nfa) < CFG.accept_log_nfa
+    assert not bool(decide(bank, out, dataclasses.replace(model_says_no, min_overlap=min(1.0, fitness + 0.01))))
     # ... and only a pose its inliers fix: asked for a placement error below its own, it is not accepted alone
     place = float(out.placement_error)
     assert 0 < place < 0.05
-    vague = dataclasses.replace(model_says_no, alone_max_placement_error=0.9 * place)
-    out = jax.jit(lambda bank, e, k: memory.identify(bank, e, vague, k))(_bank(entries[a]), entries[b],
-                                                                         jax.random.PRNGKey(0))
-    assert int(out.map_id) == -1 and float(out.log_nfa) < CFG.accept_log_nfa
+    assert not bool(decide(bank, out, dataclasses.replace(model_says_no, alone_max_placement_error=0.9 * place)))
 
 
 def test_placement_error_predicts_the_spread_of_a_fitted_similarity():

@@ -13,7 +13,7 @@ all transforms are Sim(3). The geometry (RANSAC, ICP, grid search) is :mod:`cm3d
 :mod:`cm3d.ops.grid`.
 """
 
-from cm3d.memory.acceptance import acceptance_features, acceptance_score, model_accepts
+from cm3d.memory.acceptance import acceptance_features, acceptance_score, accepts, model_accepts
 from cm3d.memory.bank import (
     GRID_CELL,
     MapCloud,
@@ -64,7 +64,7 @@ __all__ = [
     "ACCEPTANCE_FEATURES", "CAPACITY_FIELDS", "CommitReport", "DESCRIPTOR_3D_DIMS", "FORMAT_VERSION", "GRID_CELL", "MAGIC", "READ_VERSIONS",
     "Identification", "Keypoints", "MapCloud", "MapWrite", "MapEntry", "MemoryBank", "MemoryConfig", "MemoryFileError",
     "MemoryFullError", "Recall", "Report", "SequenceCloud", "Snapshot", "StoredBank", "Verification", "acceptance_features",
-    "acceptance_score", "add_map", "build_entry", "capacities", "check_bank_path", "commit", "cloud_descriptor", "config_from_dict",
+    "acceptance_score", "accepts", "add_map", "build_entry", "capacities", "check_bank_path", "commit", "cloud_descriptor", "config_from_dict",
     "downsample_to_capacity", "empty", "even_subsample", "evenly_spread", "fit_keypoints", "global_table",
     "identify", "insert_map", "keypoint_clusters", "lift_keypoints", "load", "map_cloud", "map_counts", "match_keypoints",
     "merge_banks", "merge_evenly", "modify", "read", "model_accepts", "recall", "relocalize", "remember", "remove_map", "save",

@@ -134,3 +134,19 @@ def hard_checks(bank, m, v: Verification, cfg: MemoryConfig):
 def model_accepts(bank, m, v: Verification, score, cfg: MemoryConfig):
     """The acceptance model's decision: score >= 0 and the :func:`hard_checks`."""
     return hard_checks(bank, m, v, cfg) & (score >= 0)
+
+
+def accepts(bank, m, v: Verification, score, log_nfa, place, cfg: MemoryConfig):
+    """The final decision on the verified candidate ``m`` (what :func:`identify` reports as
+    ``verification.accepted``), from its evidence alone, so a changed threshold needs no new
+    verification: the acceptance model (``score``, :func:`acceptance_score`; None: ``v.accepted``,
+    the verification's thresholds) and the chance test (``log_nfa`` below ``cfg.max_log_nfa``), or far
+    beyond chance (below ``cfg.accept_log_nfa``) with the :func:`hard_checks` and a pose its inliers fix
+    (``place``, :func:`placement_error`, at most ``cfg.alone_max_placement_error``); with ``"full"``
+    verification also an overlap with the map (ICP fitness at least ``cfg.min_overlap``). Pure."""
+    base = v.accepted if score is None else model_accepts(bank, m, v, score, cfg)
+    alone = hard_checks(bank, m, v, cfg) & (log_nfa < cfg.accept_log_nfa) & (place <= cfg.alone_max_placement_error)
+    accepted = (base & (log_nfa < cfg.max_log_nfa)) | alone
+    if cfg.verification == "full":  # the window must share a part of its surface with the map, not touch it
+        accepted = accepted & (v.fitness >= cfg.min_overlap)
+    return accepted

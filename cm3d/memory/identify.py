@@ -7,8 +7,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from cm3d.memory.acceptance import (acceptance_features, acceptance_score, chance_test, chance_tests, hard_checks,
-                                    model_accepts, placement_error)
+from cm3d.memory.acceptance import (acceptance_features, acceptance_score, accepts, chance_test, chance_tests,
+                                    placement_error)
 from cm3d.memory.bank import MemoryBank
 from cm3d.memory.config import MemoryConfig
 from cm3d.memory.entry import MapEntry
@@ -51,8 +51,8 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
     and whose keypoint inliers fix its pose (:func:`placement_error` at most
     ``cfg.alone_max_placement_error``) is accepted whatever the model or the thresholds say. With
     ``"full"`` verification an accepted candidate also overlaps the map: ICP fitness at least
-    ``cfg.min_overlap``. A query without 2D candidates skips the 3D stages (a ``lax.cond``; under
-    ``vmap`` both branches run) and reports no candidate: inliers -1, zero ICP figures, identity
+    ``cfg.min_overlap``. (The decision is :func:`accepts` of the reported evidence.) A query without
+    2D candidates skips the 3D stages (a ``lax.cond``; under ``vmap`` both branches run) and reports no candidate: inliers -1, zero ICP figures, identity
     transform, NaN acceptance score, infinite placement error.
     """
     r = recall(bank, entry.kf_desc, entry.kf_valid, entry.cloud_desc, cfg)
@@ -72,20 +72,12 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
         m = cand[b]
         v, screen, s_kp = refine_pose(bank, m, entry, Ts[b], scales[b], matches[b], inliers[b], cfg)
         feats = acceptance_features(bank, entry, r, best, b, inliers[b], screen, s_kp, v)
-        score = None
-        if cfg.accept_weights and cfg.verification == "full":
-            score = acceptance_score(feats, cfg)
-            v = v.replace(accepted=model_accepts(bank, m, v, score, cfg))
+        score = acceptance_score(feats, cfg) if cfg.accept_weights and cfg.verification == "full" else None
         # the chance test (3D feature stage, under the final pose): an a-contrario bound on the keypoint inliers
         thr = cfg.ransac_distance * jnp.maximum(bank.voxel_size[jnp.maximum(m, 0)], 1e-12)
         k, lam, log_nfa = chance_test(scored[0][b], scored[1][b], scored[2][b], v.transform, thr, chance_tests(cfg))
         place = placement_error(scored[0][b], scored[1][b], scored[2][b], v.transform, thr)
-        # far beyond chance and placed by its inliers (not a small cluster of them): accepted alone
-        alone = (hard_checks(bank, m, v, cfg) & (log_nfa < cfg.accept_log_nfa)
-                 & (place <= cfg.alone_max_placement_error))
-        accepted = (v.accepted & (log_nfa < cfg.max_log_nfa)) | alone
-        if cfg.verification == "full":  # the window must share a part of its surface with the map, not touch it
-            accepted = accepted & (v.fitness >= cfg.min_overlap)
+        accepted = accepts(bank, m, v, score, log_nfa, place, cfg)
         v = v.replace(accepted=accepted)
         return Identification(recall=r, candidate_inliers=best, verification=v,
                               map_id=jnp.where(v.accepted, m, -1), candidate=m, features=feats, acceptance=score,
