@@ -52,8 +52,9 @@ def identify(bank: MemoryBank, entry: MapEntry, cfg: MemoryConfig, key) -> Ident
     ``cfg.alone_max_placement_error``) is accepted whatever the model or the thresholds say. With
     ``"full"`` verification an accepted candidate also overlaps the map: ICP fitness at least
     ``cfg.min_overlap``. (The decision is :func:`accepts` of the reported evidence.) A query without
-    2D candidates skips the 3D stages (a ``lax.cond``; under ``vmap`` both branches run) and reports no candidate: inliers -1, zero ICP figures, identity
-    transform, NaN acceptance score, infinite placement error.
+    2D candidates skips the 3D stages (a ``lax.cond``; under ``vmap`` both branches run) and reports no
+    candidate: inliers -1, zero ICP figures, identity transform, NaN acceptance score, infinite placement
+    error.
     """
     r = recall(bank, entry.kf_desc, entry.kf_valid, entry.cloud_desc, cfg)
     cand = r.candidates
