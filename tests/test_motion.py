@@ -99,7 +99,7 @@ def test_edge_cases_no_nan(clean_seq, case):
     if case == "zero_flow":
         flow = jnp.zeros((H, W, 2))
     elif case == "constant_flow":
-        flow = jnp.full((H, W, 2), 2.5)
+        flow = jnp.full((H, W, 2), 2.5, jnp.float32)  # (not weakly typed: zero_flow's program)
     elif case == "all_static":  # the flow is exactly the ego flow: nothing moves
         flow = ego
     else:  # every pixel moves 6 px against the (trusted, unrefined) ego motion
