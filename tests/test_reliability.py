@@ -334,20 +334,57 @@ def test_the_in_graph_warp_error_equals_the_host_check():
         np.testing.assert_allclose(np.asarray(got), ref.mean(0), rtol=2e-4)
         assert got[1] > got[0]  # the perturbed poses disagree with the images
     # the memory solution's test (pipeline.memory_graph.photometric_test) on these frames as a window,
-    # vmapped over (memory-free, memory) cases: memory moved the poses off (refused), the other way round
-    # (used), a tie (the memory-free poses kept: the memory must make the images agree better), and no
-    # static pixel at all (no evidence, no objection)
+    # vmapped over (memory-free, memory) cases: memory moved the poses well off (refused), the other way round
+    # (used: better on the mean and on more frame pairs than chance), a tie (the memory-free poses kept: the
+    # memory must make the images agree better), and no static pixel at all (no evidence, no objection)
     from cm3d.pipeline.memory_graph import photometric_test
 
     def test(static, free, with_memory):
         win = types.SimpleNamespace(image=args[0], depth=args[1], conf=args[2], static=static, intrinsic=args[4],
                                     valid=jnp.ones(7, bool))
-        return photometric_test(win, free, with_memory)[0]
+        return photometric_test(win, free, with_memory)
 
-    a, b, none = trajs[0], trajs[1], jnp.zeros_like(args[3])
-    ok = jax.jit(jax.vmap(test))(jnp.stack([args[3], args[3], args[3], none]), jnp.stack([a, b, a, a]),
-                                 jnp.stack([b, a, a, b]))
+    a, none = trajs[0], jnp.zeros_like(args[3])
+    b = jnp.asarray(np.einsum("nij,njk->nik", prior, np.asarray(se3.exp(np.concatenate(  # well off on every frame
+        [0.05 * rng.normal(size=(7, 3)), 0.1 * rng.normal(size=(7, 3))], 1)), np.float64)), jnp.float32)
+    ok, _, _, p = jax.jit(jax.vmap(test))(jnp.stack([args[3], args[3], args[3], none]), jnp.stack([a, b, a, a]),
+                                          jnp.stack([b, a, a, b]))
     assert np.asarray(ok).tolist() == [False, True, False, True]
+    assert float(p[1]) < 0.05  # the memory solution that is used wins on the frame pairs too
+
+
+def test_photometric_decision_counts_frame_pairs_against_chance():
+    """A memory solution whose mean grey error is lower only because the memory-free poses misplace one
+    frame (4 of 24 frame pairs much worse), while it is the worse one on most other pairs, is refused:
+    the sign test over the pairs (pipeline.memory_graph.photometric_decision); better on 20 of 24 is used;
+    a window without paired pixels raises no objection."""
+    import jax
+    import jax.numpy as jnp
+
+    from cm3d.pipeline.memory_graph import photometric_decision
+
+    rng = np.random.default_rng(0)
+    free = 6.0 + rng.uniform(0, 1, 24)
+    one_frame = np.stack([free + np.where(np.arange(24) < 4, 3.0, 0.0), free * 1.01], 1)  # mean favours memory
+    mostly = np.stack([free, free * np.where(np.arange(24) < 20, 0.97, 1.01)], 1)
+    n = np.full(24, 500)
+    ok, e_free, e_mem, p = jax.vmap(photometric_decision)(jnp.asarray(np.stack([one_frame, mostly, mostly])),
+                                                          jnp.asarray(np.stack([n, n, 0 * n])))
+    assert float(e_mem[0]) < float(e_free[0]) and float(p[0]) > 0.9
+    assert np.asarray(ok).tolist() == [False, True, True] and float(p[1]) < 1e-3
+
+
+def test_sign_test_against_scipy():
+    """pipeline.memory_graph.sign_test: the binomial upper tail P(X >= k), X ~ Binomial(n, 1/2)."""
+    from scipy.stats import binom
+
+    from cm3d.pipeline.memory_graph import sign_test
+
+    k = np.array([0, 1, 3, 10, 17, 30, 41, 60])
+    n = np.array([0, 5, 3, 20, 20, 40, 60, 60])
+    got = np.asarray(sign_test(k, n - k))
+    want = np.where(k > 0, binom.sf(k - 1, n, 0.5), 1.0)
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-7)
 
 
 # ---------------------------------------------------------------------------------------------

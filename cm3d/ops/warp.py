@@ -29,13 +29,15 @@ def _bilinear(img, u, v):
     return top * (1 - fv) + bottom * fv
 
 
-def paired_warp_errors(images, depth, conf, static, K, trajectories, valid, gaps=(1, 2, 4), step: int = 1,
-                       truncate: float = 40.0):
-    """Errors of trajectories on the same frames.
+def pair_warp_errors(images, depth, conf, static, K, trajectories, valid, gaps=(1, 2, 4), step: int = 1,
+                     truncate: float = 40.0):
+    """Errors of trajectories on the same frames, per frame pair.
 
     images (S, H, W[, C]) grey levels 0-255 (channels averaged); depth, conf (S, H, W); static (S, H, W)
     bool; K (S, 3, 3); trajectories (T, S, 4, 4) cam_to_world; valid (S,) frames that count; ``gaps``,
-    ``step`` static. Returns (errors (T,), paired pixels in all ()); errors are 0 without any pair."""
+    ``step`` static. Returns (errors (P, T), paired pixels (P,)) for the pairs ``(t, t + g)``, ``g`` in
+    ``gaps`` (P = S x len(gaps), gap-major): each pair's mean absolute grey difference over the pixels
+    paired under every trajectory (0 where none)."""
     grey = images.astype(jnp.float32)
     if grey.ndim == 4:
         grey = grey.mean(-1)
@@ -74,8 +76,14 @@ def paired_warp_errors(images, depth, conf, static, K, trajectories, valid, gaps
 
     ts = jnp.arange(S)
     per_gap = [jax.vmap(lambda t, g=g: pair(t, g))(ts) for g in gaps]
-    err = jnp.concatenate([e for e, _ in per_gap])  # (P, T)
-    n = jnp.concatenate([c for _, c in per_gap])  # (P,)
+    return jnp.concatenate([e for e, _ in per_gap]), jnp.concatenate([c for _, c in per_gap])
+
+
+def paired_warp_errors(images, depth, conf, static, K, trajectories, valid, gaps=(1, 2, 4), step: int = 1,
+                       truncate: float = 40.0):
+    """Errors of trajectories on the same frames: :func:`pair_warp_errors` averaged over the frame pairs
+    with paired pixels. Returns (errors (T,), paired pixels in all ()); errors are 0 without any pair."""
+    err, n = pair_warp_errors(images, depth, conf, static, K, trajectories, valid, gaps, step, truncate)
     has = n > 0
     errors = jnp.sum(jnp.where(has[:, None], err, 0.0), axis=0) / jnp.maximum(jnp.sum(has), 1)
     return errors, jnp.sum(n)

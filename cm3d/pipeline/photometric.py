@@ -23,6 +23,10 @@ MAX_PIXELS = 3000  # pixels sampled per frame
 MIN_PIXELS = 200  # fewer paired pixels in all: no evidence
 SAME_POSES = 1e-5  # refined poses this close to the prior (float32 noise of the compiled step) are the prior
 TIE = 1e-3  # relative error difference below which the images cannot tell the two trajectories apart
+# the window's memory test (cm3d.pipeline.memory_graph.photometric_test): the frame pairs on which the memory
+# solution is the better one, counted against chance (a one-sided sign test), must be this unlikely under "no
+# difference"; a conventional level, the same on any data
+SIGN_ALPHA = 0.05
 
 
 def _bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:

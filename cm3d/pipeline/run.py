@@ -75,6 +75,7 @@ class WindowRecord:
     decision: str = ""  # which test accepted / rejected the verified candidate, and by how much
     photo_free: float = float("nan")  # grey error (levels) of the window's static pixels: memory-free poses ...
     photo_memory: float = float("nan")  # ... and the memory solution's (used only when lower by more than the tie)
+    photo_p: float = float("nan")  # ... and when better on more frame pairs than chance (sign test p < SIGN_ALPHA)
 
     @classmethod
     def from_result(cls, w, memory_on: bool) -> "WindowRecord":
@@ -97,7 +98,7 @@ class WindowRecord:
             lm_iterations=int(w.iterations), lm_cost=float(w.cost), acceptance=float(r.acceptance),
             pose_inliers=int(r.pose_inliers), chance_inliers=float(r.chance_inliers), log_nfa=float(r.log_nfa),
             placement_error=float(r.placement_error), decision=memory_decision(r, memory_on),
-            photo_free=float(w.photo_free), photo_memory=float(w.photo_memory))
+            photo_free=float(w.photo_free), photo_memory=float(w.photo_memory), photo_p=float(w.photo_p))
 
     def to_json(self) -> dict:
         """A JSON-ready dict (lists, Python numbers; transforms rounded to 6 decimals); ``chunk`` only

@@ -26,7 +26,7 @@ from cm3d.pipeline.window import factor_graph, rescale_window
 class WindowResult:
     """One window's result: final poses (W, 4, 4), frame index (W,), valid (W,), the gate, graph
     counts, the :class:`RecallReport`, dropped tracks, the memory solution's use, χ² test and photometric
-    test (grey errors of the memory-free and the memory solution); the
+    test (grey errors of the memory-free and the memory solution, the sign test's p-value); the
     memory-free graph's final LM ``cost`` and its landmarks ``points`` (L, 3) at the prior depth's
     scale with ``point_valid`` (L,) (the tracks in the graph)."""
 
@@ -48,6 +48,7 @@ class WindowResult:
     memory_threshold: Any
     photo_free: Any
     photo_memory: Any
+    photo_p: Any
     cost: Any
     points: Any
     point_valid: Any
@@ -62,7 +63,7 @@ class WindowResult:
                    gate_threshold=jnp.zeros(()), observations=z, inliers=z, landmarks=z, memory_landmarks=z,
                    iterations=z, recall=RecallReport.empty(top_k), inconsistent=z,
                    memory_used=jnp.zeros((), bool), memory_stat=jnp.zeros(()), memory_threshold=jnp.zeros(()),
-                   photo_free=jnp.zeros(()), photo_memory=jnp.zeros(()), cost=jnp.zeros(()), points=jnp.zeros((num_landmarks, 3), jnp.float32),
+                   photo_free=jnp.zeros(()), photo_memory=jnp.zeros(()), photo_p=jnp.zeros(()), cost=jnp.zeros(()), points=jnp.zeros((num_landmarks, 3), jnp.float32),
                    point_valid=jnp.zeros(num_landmarks, bool))
 
 
@@ -126,7 +127,7 @@ def window_end(bank: memory.MemoryBank, cursor: MemoryCursor, key, win: Window, 
                        memory_landmarks=mem.landmarks, iterations=ref.result.iterations.astype(jnp.int32),
                        recall=mem.report, inconsistent=n_bad.astype(jnp.int32), memory_used=mem.used,
                        memory_stat=mem.stat, memory_threshold=mem.threshold, photo_free=mem.photo_free,
-                       photo_memory=mem.photo_memory,
+                       photo_memory=mem.photo_memory, photo_p=mem.photo_p,
                        cost=ref.result.cost.astype(jnp.float32), points=points.astype(jnp.float32),
                        point_valid=in_graph)
     return bank, cursor, res
