@@ -65,10 +65,11 @@ def _memory_solution(w) -> str:
         return "used"
     if w.memory_stat > w.memory_threshold:
         return f"refused by its chi2 test ({w.memory_stat:.1f} > {w.memory_threshold:.1f})"
-    if w.photo_memory > w.photo_free:
-        return f"refused by its photometric test (grey error {w.photo_memory:.4f} > {w.photo_free:.4f} memory-free)"
-    from cm3d.pipeline.photometric import SIGN_ALPHA
+    from cm3d.pipeline.photometric import SIGN_ALPHA, TIE
 
+    if w.photo_memory >= w.photo_free * (1 - TIE):
+        return (f"refused by its photometric test (grey error {w.photo_memory:.4f}, memory-free {w.photo_free:.4f}: "
+                "not lower by more than the tie)")
     if w.photo_p >= SIGN_ALPHA:
         return f"refused by its photometric test (better on too few frame pairs: sign test p = {w.photo_p:.3f})"
     return "not used (too few landmarks on the remembered surface, or non-finite)"
