@@ -208,7 +208,8 @@ def photometric_test(win: Window, free, with_memory):
     against those where it is the worse must pass a one-sided sign test at ``SIGN_ALPHA``
     (:func:`sign_test`): a mean can be lowered by a few pairs the images pair badly (stop 62: a
     window across the kitchen's 62-frame jump, 0.56 % lower, moved its chunk's ATE from 0.0101 to
-    0.0140), a count over the pairs cannot.
+    0.0140), a count over the pairs cannot. (The pairs share frames, so they are not independent units:
+    the level is nominal, and the test is no stricter than it.)
     Evidence neither solution was fitted to: the χ² test only asks whether the memory solution still
     fits the window's own tracks, which it can while it moves the poses away from the truth. A tie
     keeps the memory-free poses: the memory must earn its place (until stop 47 a tie went to the memory,
