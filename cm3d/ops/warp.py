@@ -84,6 +84,11 @@ def paired_warp_errors(images, depth, conf, static, K, trajectories, valid, gaps
     """Errors of trajectories on the same frames: :func:`pair_warp_errors` averaged over the frame pairs
     with paired pixels. Returns (errors (T,), paired pixels in all ()); errors are 0 without any pair."""
     err, n = pair_warp_errors(images, depth, conf, static, K, trajectories, valid, gaps, step, truncate)
+    return mean_over_pairs(err, n), jnp.sum(n)
+
+
+def mean_over_pairs(err, n):
+    """Errors (P, T) of :func:`pair_warp_errors` averaged over the pairs with paired pixels (``n`` (P,) > 0):
+    (T,), 0 without any."""
     has = n > 0
-    errors = jnp.sum(jnp.where(has[:, None], err, 0.0), axis=0) / jnp.maximum(jnp.sum(has), 1)
-    return errors, jnp.sum(n)
+    return jnp.sum(jnp.where(has[:, None], err, 0.0), axis=0) / jnp.maximum(jnp.sum(has), 1)

@@ -227,11 +227,12 @@ def photometric_decision(per, n_pair):
     """:func:`photometric_test`'s decision from the frame pairs' grey errors ``per`` (P, 2) (memory-free,
     memory) and paired pixels ``n_pair`` (P,): (ok, error free, error memory, sign test p-value)."""
     has = n_pair > 0
-    err = jnp.sum(jnp.where(has[:, None], per, 0.0), axis=0) / jnp.maximum(jnp.sum(has), 1)
+    err = warp.mean_over_pairs(per, n_pair)
     better = jnp.sum(has & (per[:, 1] < per[:, 0] * (1 - ph.TIE)))
     worse = jnp.sum(has & (per[:, 1] > per[:, 0] * (1 + ph.TIE)))
     p = sign_test(better, worse)
-    ok = (jnp.sum(n_pair) < ph.MIN_PIXELS) | ((err[1] < err[0] * (1 - ph.TIE)) & (p < ph.SIGN_ALPHA))
+    mean_ok, pairs_ok = ph.memory_wins(err[0], err[1], p)
+    ok = (jnp.sum(n_pair) < ph.MIN_PIXELS) | (mean_ok & pairs_ok)
     return ok, err[0].astype(jnp.float32), err[1].astype(jnp.float32), p.astype(jnp.float32)
 
 

@@ -29,6 +29,12 @@ TIE = 1e-3  # relative error difference below which the images cannot tell the t
 SIGN_ALPHA = 0.05
 
 
+def memory_wins(e_free, e_mem, p):
+    """The memory solution's two photometric conditions (NumPy or JAX scalars): (its mean grey error is lower
+    than the memory-free one's by more than ``TIE``, its sign test over the frame pairs has p < ``SIGN_ALPHA``)."""
+    return e_mem < e_free * (1 - TIE), p < SIGN_ALPHA
+
+
 def _bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     H, W = img.shape
     u0 = np.clip(np.floor(u).astype(np.int64), 0, W - 2)

@@ -63,8 +63,8 @@ class WindowResult:
                    gate_threshold=jnp.zeros(()), observations=z, inliers=z, landmarks=z, memory_landmarks=z,
                    iterations=z, recall=RecallReport.empty(top_k), inconsistent=z,
                    memory_used=jnp.zeros((), bool), memory_stat=jnp.zeros(()), memory_threshold=jnp.zeros(()),
-                   photo_free=jnp.zeros(()), photo_memory=jnp.zeros(()), photo_p=jnp.zeros(()), cost=jnp.zeros(()), points=jnp.zeros((num_landmarks, 3), jnp.float32),
-                   point_valid=jnp.zeros(num_landmarks, bool))
+                   photo_free=jnp.zeros(()), photo_memory=jnp.zeros(()), photo_p=jnp.zeros(()), cost=jnp.zeros(()),
+                   points=jnp.zeros((num_landmarks, 3), jnp.float32), point_valid=jnp.zeros(num_landmarks, bool))
 
 
 @struct.dataclass

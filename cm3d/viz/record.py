@@ -65,12 +65,13 @@ def _memory_solution(w) -> str:
         return "used"
     if w.memory_stat > w.memory_threshold:
         return f"refused by its chi2 test ({w.memory_stat:.1f} > {w.memory_threshold:.1f})"
-    from cm3d.pipeline.photometric import SIGN_ALPHA, TIE
+    from cm3d.pipeline.photometric import memory_wins
 
-    if w.photo_memory >= w.photo_free * (1 - TIE):
+    mean_ok, pairs_ok = memory_wins(w.photo_free, w.photo_memory, w.photo_p)
+    if np.isfinite(w.photo_memory) and not mean_ok:
         return (f"refused by its photometric test (grey error {w.photo_memory:.4f}, memory-free {w.photo_free:.4f}: "
                 "not lower by more than the tie)")
-    if w.photo_p >= SIGN_ALPHA:
+    if np.isfinite(w.photo_p) and not pairs_ok:
         return f"refused by its photometric test (better on too few frame pairs: sign test p = {w.photo_p:.3f})"
     return "not used (too few landmarks on the remembered surface, or non-finite)"
 
