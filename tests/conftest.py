@@ -39,7 +39,8 @@ if "xla_llvm_disable_expensive_passes" not in os.environ["XLA_FLAGS"]:
     os.environ["XLA_FLAGS"] += " --xla_llvm_disable_expensive_passes=true"
 # ... and with XLA's older IR emitters for fusions instead of its MLIR fusion emitters: the same HLO and the same
 # wall time for one compile alone, but 15 % less CPU (stop 63: the 48x64 memory demo compiled in 64.8 s
-# wall / 68.8 s CPU against 64.6 s / 81.2 s), CPU the suite's two workers share.
+# wall / 68.8 s CPU against 64.6 s / 81.2 s), CPU the suite's two workers share; the whole suite on 2 cores:
+# 785 s -> 478 s, most of it in the thousands of small programs.
 if "xla_cpu_use_fusion_emitters" not in os.environ["XLA_FLAGS"]:
     os.environ["XLA_FLAGS"] += " --xla_cpu_use_fusion_emitters=false"
 # The flag cm3d.cli adds for stored programs (cli.XLA_CPU_FLAGS), here too: an in-process cm3d run
