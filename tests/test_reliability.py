@@ -234,6 +234,30 @@ def test_input_statistics_equal_their_plain_formulas():
                                   (np.hypot(gx, gy) > quality.TEXTURE_LEVELS).mean((1, 2)))
 
 
+def test_input_assessment_takes_its_image_medians_over_evenly_spaced_frames():
+    from cm3d.data import quality
+
+    seq = synthetic.generate(0, 0, 8, "moderate", WORLD)
+    n = 40
+    tile = lambda a: np.concatenate([np.asarray(a)] * (n // 8))  # noqa: E731
+    long = seq.replace(images=tile(seq.images), depth=tile(seq.depth), depth_conf=tile(seq.depth_conf),
+                       cam_to_world=tile(seq.cam_to_world))
+    picked = np.unique(np.linspace(0, n - 1, quality.ASSESSED_FRAMES).round().astype(int))
+    assert len(picked) == quality.ASSESSED_FRAMES and picked[0] == 0 and picked[-1] == n - 1
+    noise = np.random.default_rng(1).integers(0, 256, long.images.shape, dtype=np.uint8)
+    skipped = np.setdiff1d(np.arange(n), picked)
+    q = quality.assess_input(long)
+    # frames between the picked ones do not enter the medians ...
+    assert quality.assess_input(long.replace(images=np.where(np.isin(np.arange(n), skipped)[:, None, None, None],
+                                                             noise, long.images))) == q
+    grey = quality.grey_levels(np.asarray(long.images)[picked])
+    assert q.neighbour_correlation == np.median(quality.neighbour_correlation(grey))
+    assert q.textured_share == np.median(quality.textured_share(grey))
+    # ... and noise in the picked ones is found
+    bad = quality.assess_input(long.replace(images=noise))
+    assert bad.degenerate and "random noise" in bad.problems[0] and not q.degenerate
+
+
 def test_a_noise_sequence_stores_nothing_and_keeps_the_prior(tmp_path, empty_bank, capsys):
     seq = synthetic.generate(0, 0, 8, "moderate", WORLD)
     noise = seq.replace(images=np.random.default_rng(0).integers(0, 256, seq.images.shape, dtype=np.uint8))
