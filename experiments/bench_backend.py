@@ -39,6 +39,7 @@ def time_front_end(seq, cfg: pipeline.PipelineConfig):
     """Seconds per frame of DIS flow and of SIFT matching + feature detection (host)."""
     from cm3d.ops import flow as oflow
     from cm3d.ops import keypoints as okp
+    from cm3d.pipeline.prepare import match_config
 
     imgs = seq.images
     t0 = time.perf_counter()
@@ -46,10 +47,11 @@ def time_front_end(seq, cfg: pipeline.PipelineConfig):
         oflow.compute_flow(imgs[t], imgs[t + 1], cfg.flow)
     t_flow = (time.perf_counter() - t0) / (len(imgs) - 1)
     t0 = time.perf_counter()
+    mk = match_config(cfg)  # as pipeline.prepare: matches at 1 / stride, features every few frames
     for t in range(len(imgs) - 1):
-        okp.match_keypoints(imgs[t], imgs[t + 1], cfg.keypoints)
-    if hasattr(okp, "detect_sequence"):
-        okp.detect_sequence(imgs, None, cfg.feature_capacity, cfg.keypoints)
+        pair = [okp.detect_reduced(img, mk, cfg.stride) for img in (imgs[t], imgs[t + 1])]
+        okp.match_detections(*pair, mk)
+    okp.detect_sequence(imgs[::cfg.feature_every], None, cfg.feature_capacity, cfg.keypoints)
     t_kp = (time.perf_counter() - t0) / (len(imgs) - 1)
     return t_flow, t_kp
 

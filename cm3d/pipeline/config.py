@@ -42,11 +42,20 @@ class PipelineConfig:
     memory-free poses, by more than the photometric tie (besides its χ² test;
     memory_graph.photometric_test); map_min_support:
     stored entries drop voxels with fewer samples than this share of the median voxel's;
-    keyframe_threshold: descriptor distance between memory keyframes; feature_capacity: 3D keypoints per
-    frame; flow / keypoints: the OpenCV front end (SIFT at contrast 0.01, its memory features a round
-    robin over an 8 x 8 image grid: a revisit then finds keypoints on the weakly textured walls a first
-    visit saw, docs/memory.md, stop 44; the motion cue's matches only among keypoints that pass OpenCV's
-    default 0.04, as before: the same matches at a sixth of the matching cost); global_graph: the pose
+    keyframe_threshold: descriptor distance between memory keyframes; flow / keypoints: the OpenCV front
+    end. The memory's features: SIFT at the input's full resolution (issue 22) at contrast 0.01, a round
+    robin over an 8 x 8 image grid (a revisit then finds keypoints on the weakly textured walls a first
+    visit saw, docs/memory.md, stop 44), on every ``feature_every``-th frame (t % feature_every == 0),
+    ``feature_capacity`` 3D keypoints each (the other frames carry none: neighbouring frames see the same
+    corners, and full-resolution SIFT was the host's largest cost, issue 23; 2 x 256 keeps a 20-frame
+    window's 2560 map keypoints of 20 x 128; 4 x 512 let a kitchen pair of 9 % overlap be recalled,
+    docs/pipeline.md, stop 64). The motion cue's matches
+    (frame t with its partner): with ``match_reduced`` SIFT on the image area-averaged by ``stride`` (the
+    back end's resolution, where the cue runs) at contrast ``keypoints.match_contrast`` (0.02: one octave
+    fewer than at full resolution, OpenCV's 0.04 there leaves 15-25 % fewer matches than the full-resolution
+    detection at 0.04 gave, kitchen 189 against 249 a frame, cm3d's world 127 against 149; 0.02 gives 253 /
+    250, the 256-match capacity), on every frame; without it, from the full-resolution detection (then made
+    on every frame), its keypoints that pass ``match_contrast``; global_graph: the pose
     graph over every frame after the windows (:mod:`cm3d.pipeline.global_graph`, host side);
     refine_masks: the output masks are the motion cue's masks refined and tracked over the sequence
     (:func:`cm3d.refine.refine_sequence`, GrabCut, host side, a piece at a time beside the back end:
@@ -75,10 +84,12 @@ class PipelineConfig:
     memory_sigma_voxels: float = 0.5
     keyframe_threshold: float = 0.25
     memory_photometric: bool = True
-    feature_capacity: int = 128
+    feature_capacity: int = 256
+    feature_every: int = 2
+    match_reduced: bool = True
     flow: FlowConfig = FlowConfig()
     keypoints: KeypointConfig = KeypointConfig(max_matches=256, contrast_threshold=0.01, spread_cells=8,
-                                               match_contrast=0.04)
+                                               match_contrast=0.02)
     global_graph: GlobalGraphConfig = GlobalGraphConfig()
     refine_masks: bool = True
     seed: int = 0
@@ -87,6 +98,7 @@ class PipelineConfig:
         for ok, what in ((self.keyframe_interval >= 2, "keyframe_interval: must be >= 2"),
                          (self.stride >= 1, "stride: must be >= 1"),
                          (self.feature_capacity >= 1, "feature_capacity: must be >= 1"),
+                         (self.feature_every >= 1, "feature_every: must be >= 1"),
                          (self.min_memory_landmarks >= 1, "min_memory_landmarks: must be >= 1"),
                          (0 <= self.map_min_support < 1, "map_min_support: must be in [0, 1)"),
                          (self.memory_sigma_voxels >= 0, "memory_sigma_voxels: must be >= 0")):
@@ -113,7 +125,7 @@ def small_config(**changes) -> PipelineConfig:
         memory=memory.MemoryConfig(max_maps=4, max_points=256, max_keyframes=4, max_keypoints=64,
                                    icp_points=64, ransac_hypotheses=64, min_inliers=20,
                                    min_keypoint_inliers=4),  # a 48x64 window has few distinct 3D points
-        feature_capacity=32, keypoints=KeypointConfig(max_matches=64))
+        feature_capacity=32, feature_every=1, keypoints=KeypointConfig(max_matches=64))
     return dataclasses.replace(base, **changes)
 
 

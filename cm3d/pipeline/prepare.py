@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import jax
@@ -76,14 +77,22 @@ def _check_sequence(sequence, cfg: PipelineConfig) -> None:
                          f"{cfg.track.cell * s} px")
 
 
+def match_config(cfg: PipelineConfig):
+    """The detector of the cue's matches with ``cfg.match_reduced`` (:func:`cm3d.ops.keypoints.detect_reduced`
+    by ``cfg.stride``): ``cfg.keypoints`` at contrast ``match_contrast``."""
+    kp = cfg.keypoints
+    return dataclasses.replace(kp, contrast_threshold=kp.match_contrast or kp.contrast_threshold, match_contrast=None)
+
+
 def prepare_chunks(sequence, cfg: PipelineConfig = PipelineConfig(), flow=None, progress=None,
                    size: int | None = None):
     """:func:`prepare` in pieces: yields ``(first frame, Inputs of size frames)`` for frames
     ``0, size, 2 size, ...`` of the padded sequence (``size``: default ``keyframe_interval``, which
     divides :func:`padded_length`), so that the caller can run one piece while the next is prepared.
     Each frame's OpenCV work is done once: its flow pair with its partner (t+1; the last frame reuses
-    the pair before it, reversed) and one keypoint detection, shared by the matches of the pairs it
-    is in and by its memory features. Concatenated, the pieces are :func:`prepare`'s arrays."""
+    the pair before it, reversed), one keypoint detection for the matches of the pairs it is in and, on
+    every ``cfg.feature_every``-th frame, one at full resolution for its memory features (the same one
+    when the matches use full resolution). Concatenated, the pieces are :func:`prepare`'s arrays."""
     from cm3d.ops import flow as oflow
     from cm3d.ops import keypoints as okp
 
@@ -103,12 +112,24 @@ def prepare_chunks(sequence, cfg: PipelineConfig = PipelineConfig(), flow=None, 
     c2w = np.asarray(sequence.cam_to_world, np.float32)
     frame = FramePrior(image=img_s, depth=depth, depth_conf=conf, intrinsic=K, cam_to_world=c2w)
     kp = cfg.keypoints
-    dets, pairs, per_frame = {}, {}, {}
+    reduced = cfg.match_reduced and s > 1  # at stride 1 the full-resolution detection is the cue's resolution
+    match_kp = match_config(cfg)
+    dets, match_dets, pairs, per_frame = {}, {}, {}, {}
+    no_features = okp.features_from(((), None), cfg.feature_capacity, kp)
 
     def detection(t):
+        """Frame t's full-resolution detection (the memory's features; the cue's matches without ``reduced``)."""
         if t not in dets:
             dets[t] = okp.detect(images[t], kp)
         return dets[t]
+
+    def match_detection(t):
+        """Frame t's keypoints for the cue's matches."""
+        if not reduced:
+            return detection(t)
+        if t not in match_dets:
+            match_dets[t] = okp.detect_reduced(images[t], match_kp, s)
+        return match_dets[t]
 
     def pair(t):
         """(flow, flow_rev) of frame t with its partner at reduced resolution."""
@@ -126,8 +147,9 @@ def prepare_chunks(sequence, cfg: PipelineConfig = PipelineConfig(), flow=None, 
     for a in range(0, L, size):
         real = range(a, min(a + size, S))
         for t in real:
-            m = okp.match_detections(detection(t), detection(partner[t]), kp)
-            f = okp.features_from(detection(t), cfg.feature_capacity, kp)
+            m = okp.match_detections(match_detection(t), match_detection(partner[t]), match_kp if reduced else kp)
+            f = okp.features_from(detection(t), cfg.feature_capacity, kp) if t % cfg.feature_every == 0 \
+                else no_features
             fl, fr = pair(t)
             per_frame[t] = (fl, fr, m, f)
             if progress is not None:
@@ -152,8 +174,9 @@ def prepare_chunks(sequence, cfg: PipelineConfig = PipelineConfig(), flow=None, 
             del per_frame[t]
         for t in [t for t in pairs if t < last_needed and t != S - 2]:
             del pairs[t]
-        for t in [t for t in dets if t < last_needed]:
-            del dets[t]
+        for cache in (dets, match_dets):
+            for t in [t for t in cache if t < last_needed]:
+                del cache[t]
 
 
 def piece_spec(sequence, cfg: PipelineConfig = PipelineConfig(), size: int | None = None) -> Inputs:
