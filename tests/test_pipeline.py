@@ -54,15 +54,17 @@ def test_prepare_shapes_and_padding(visits, prepared):
 
 
 def test_prepare_matches_at_the_back_ends_resolution_and_features_every_few_frames():
-    """The default front end: the cue's matches from SIFT on the image area-averaged by the stride, in the back
-    end's pixels (their displacement is the back-end flow's there), memory features on every
-    ``feature_every``-th frame only; ``feature_every=1`` puts them on every frame."""
+    """``match_reduced``: the cue's matches from SIFT on the image area-averaged by the stride, in the back end's
+    pixels (their displacement is the back-end flow's there); memory features on every ``feature_every``-th
+    frame only; the default puts them on every frame, from the same full-resolution detection."""
     import dataclasses
 
     seq = synthetic.generate(0, 0, 6, "moderate", synthetic.WorldConfig(height=192, width=256, supersample=1))
-    cfg = pipeline.PipelineConfig(keyframe_interval=6)
+    base = pipeline.PipelineConfig(keyframe_interval=6)
+    cfg = dataclasses.replace(base, match_reduced=True, feature_every=2, feature_capacity=256,
+                              keypoints=dataclasses.replace(base.keypoints, match_contrast=0.02))
     x = pipeline.prepare(seq, cfg)
-    assert cfg.stride == 2 and cfg.match_reduced and x.flow.shape == (6, 96, 128, 2)
+    assert cfg.stride == 2 and x.flow.shape == (6, 96, 128, 2)
     has = x.features.valid.any(1)
     assert has.tolist() == [t % cfg.feature_every == 0 for t in range(6)] and x.features.valid[0].sum() > 100
     for t in range(5):
@@ -71,8 +73,8 @@ def test_prepare_matches_at_the_back_ends_resolution_and_features_every_few_fram
         assert v.sum() >= 15 and uv0.max() < 128
         i, j = np.clip(np.round(uv0).astype(int), 0, [127, 95]).T
         assert np.median(np.linalg.norm(uv1 - uv0 - x.flow[t][j, i], axis=1)) < 0.5
-    every = pipeline.prepare(seq, dataclasses.replace(cfg, feature_every=1, match_reduced=False))
-    assert every.features.valid.any(1).all()
+    every = pipeline.prepare(seq, dataclasses.replace(base, feature_capacity=256))
+    assert not base.match_reduced and base.feature_every == 1 and every.features.valid.any(1).all()
     np.testing.assert_array_equal(every.features.uv[0], x.features.uv[0])  # the same full-resolution detection
 
 

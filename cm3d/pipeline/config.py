@@ -46,16 +46,14 @@ class PipelineConfig:
     end. The memory's features: SIFT at the input's full resolution (issue 22) at contrast 0.01, a round
     robin over an 8 x 8 image grid (a revisit then finds keypoints on the weakly textured walls a first
     visit saw, docs/memory.md, stop 44), on every ``feature_every``-th frame (t % feature_every == 0),
-    ``feature_capacity`` 3D keypoints each (the other frames carry none: neighbouring frames see the same
-    corners, and full-resolution SIFT was the host's largest cost, issue 23; 2 x 256 keeps a 20-frame
-    window's 2560 map keypoints of 20 x 128; 4 x 512 let a kitchen pair of 9 % overlap be recalled,
-    docs/pipeline.md, stop 64). The motion cue's matches
-    (frame t with its partner): with ``match_reduced`` SIFT on the image area-averaged by ``stride`` (the
-    back end's resolution, where the cue runs) at contrast ``keypoints.match_contrast`` (0.02: one octave
-    fewer than at full resolution, OpenCV's 0.04 there leaves 15-25 % fewer matches than the full-resolution
-    detection at 0.04 gave, kitchen 189 against 249 a frame, cm3d's world 127 against 149; 0.02 gives 253 /
-    250, the 256-match capacity), on every frame; without it, from the full-resolution detection (then made
-    on every frame), its keypoints that pass ``match_contrast``; global_graph: the pose
+    ``feature_capacity`` 3D keypoints each. The motion cue's matches (frame t with its partner): from that
+    full-resolution detection (then made on every frame), its keypoints that pass OpenCV's default 0.04
+    (``keypoints.match_contrast``: the matches of a 0.04 detection at a sixth of the matching cost); with
+    ``match_reduced``, SIFT on the image area-averaged by ``stride`` (the back end's resolution) at contrast
+    ``match_contrast`` on every frame. ``match_reduced`` with features on every 2nd frame, 256 each (and
+    ``match_contrast`` 0.02), cuts the host's SIFT work by two thirds and a warm run by ~5 %, but moved the
+    memory's figures (one more kitchen window recalled, the chunked kitchen with memory 11 % worse): measured
+    in docs/pipeline.md (stop 64), not the default; global_graph: the pose
     graph over every frame after the windows (:mod:`cm3d.pipeline.global_graph`, host side);
     refine_masks: the output masks are the motion cue's masks refined and tracked over the sequence
     (:func:`cm3d.refine.refine_sequence`, GrabCut, host side, a piece at a time beside the back end:
@@ -84,12 +82,12 @@ class PipelineConfig:
     memory_sigma_voxels: float = 0.5
     keyframe_threshold: float = 0.25
     memory_photometric: bool = True
-    feature_capacity: int = 256
-    feature_every: int = 2
-    match_reduced: bool = True
+    feature_capacity: int = 128
+    feature_every: int = 1
+    match_reduced: bool = False
     flow: FlowConfig = FlowConfig()
     keypoints: KeypointConfig = KeypointConfig(max_matches=256, contrast_threshold=0.01, spread_cells=8,
-                                               match_contrast=0.02)
+                                               match_contrast=0.04)
     global_graph: GlobalGraphConfig = GlobalGraphConfig()
     refine_masks: bool = True
     seed: int = 0
