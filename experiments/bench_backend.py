@@ -47,9 +47,9 @@ def time_front_end(seq, cfg: pipeline.PipelineConfig):
         oflow.compute_flow(imgs[t], imgs[t + 1], cfg.flow)
     t_flow = (time.perf_counter() - t0) / (len(imgs) - 1)
     t0 = time.perf_counter()
+    mk = match_config(cfg)
     for t in range(len(imgs) - 1):  # as pipeline.prepare (with match_reduced: at 1 / stride)
         if cfg.match_reduced:
-            mk = match_config(cfg)
             okp.match_detections(*[okp.detect_reduced(img, mk, cfg.stride) for img in imgs[t:t + 2]], mk)
         else:
             okp.match_keypoints(imgs[t], imgs[t + 1], cfg.keypoints)
