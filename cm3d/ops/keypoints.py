@@ -82,11 +82,13 @@ def _gray(img):
     return cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
 
 
-def detect(image: np.ndarray, cfg: KeypointConfig = KeypointConfig(), mask: np.ndarray | None = None):
+def detect(image: np.ndarray, cfg: KeypointConfig = KeypointConfig(), mask: np.ndarray | None = None,
+           precise: bool = False):
     """OpenCV keypoints and raw descriptors of ``image`` with ``cfg``'s detector (``mask`` (H, W) bool
-    optionally restricts detection): ``(keypoints, descriptors or None)``. One detection serves
-    :func:`match_detections` (both as the first and the second image) and :func:`features_from`."""
-    det, _ = _detector(cfg)
+    optionally restricts detection; ``precise``: see :func:`_detector`): ``(keypoints, descriptors or None)``.
+    One detection serves :func:`match_detections` (both as the first and the second image) and
+    :func:`features_from`."""
+    det, _ = _detector(cfg, precise)
     m8 = None if mask is None else np.asarray(mask, np.uint8) * 255
     return det.detectAndCompute(_gray(image), m8)
 
@@ -102,7 +104,7 @@ def detect_reduced(image: np.ndarray, cfg: KeypointConfig = KeypointConfig(), fa
     H, W = g.shape
     h, w = -(-H // factor), -(-W // factor)
     small = cv2.resize(g, (w, h), interpolation=cv2.INTER_AREA) if factor > 1 else g
-    kps, desc = _detector(cfg, precise=True)[0].detectAndCompute(small, None)
+    kps, desc = detect(small, cfg, precise=True)
     fx, fy = W / w, H / h
     out = [cv2.KeyPoint(fx * (k.pt[0] + 0.5) - 0.5, fy * (k.pt[1] + 0.5) - 0.5, k.size * fx, k.angle, k.response,
                         k.octave, k.class_id) for k in kps]
