@@ -35,8 +35,10 @@ and ``DISTINCT`` (segments whose ground-truth overlap is 0 %), B runs with the b
 left (one bank: A stored, B queries). A revisit counts as recalled when a window of B is accepted
 with A's map; any accepted window of a distinct pair is a false recall. Relocalisation error of an
 accepted window: its Sim(3) (B's prior frame -> A's) against the true one, rotation (°),
-translation of B's first camera after undoing A's known scale (m), scale error (%). True overlap:
-the fraction of B's ground-truth points within 5 cm of A's.
+translation of B's first camera after undoing A's known scale (m), scale error (%); beside it the
+*window's own cameras* placed in A's map (B's output poses of the window's frames moved by its Sim(3)
+against their true poses in A's frame, :func:`camera_reloc_error`: B's drift between its first frame
+and the window does not enter). True overlap: the fraction of B's ground-truth points within 5 cm of A's.
 
 ``--all-pairs`` (issue 22's bars) also runs every pair (A, B) of the run's segments with B at least one
 segment after A: each *window* of B accepted with A's map counts, on the pairs with >= 30 % true
@@ -47,10 +49,12 @@ JSON keys: ate_prior, ate_cm3d, rpe_trans_prior, rpe_trans_cm3d, map_acc_median_
 map_acc_median_cm3d, map_comp_median_prior, map_comp_median_cm3d, false_dynamic_frac,
 false_dynamic_frac_monst3r, false_dynamic_frac_untuned (without the ``TUNED_ON`` segments) (means over
 segments), revisits_recalled, revisits_total, false_recalls, distinct_total, reloc_rot_deg_median,
-reloc_trans_m_median, reloc_scale_err_pct_median (null when nothing was recalled), segments,
+reloc_trans_m_median, reloc_scale_err_pct_median, camera_reloc_rot_deg_median, camera_reloc_trans_m_median
+(null when nothing was recalled), segments,
 seconds_per_segment; one ``overlap_A_B`` per pair; with ``--all-pairs``: window_recall_frac_overlap30,
 windows_overlap30, pairs_overlap30, pairs_overlap30_recalled, false_recalls_overlap10, pairs_overlap10,
 window_reloc_rot_deg_median, window_reloc_trans_m_median, window_reloc_scale_err_pct_median,
+window_camera_reloc_rot_deg_median, window_camera_reloc_trans_m_median,
 window_reloc_abs_scale_err_pct_median, merge_acc_ratio_median, merge_comp_ratio_median, merge_acc_worse10_pairs,
 merge_comp_improved_pairs, merge_pairs. Map update (the revisit pairs B recalled): merge_acc_before, merge_acc_after,
 merge_comp_before, merge_comp_after (means; A's stored map before / after B's windows merged into it, in the world
@@ -167,6 +171,28 @@ def reloc_error(est: np.ndarray, true: np.ndarray, scale_a: float) -> dict:
     rot = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
     return {"rot_deg": rot, "trans_m": float(np.linalg.norm(est[:3, 3] - true[:3, 3]) / scale_a),
             "scale_err_pct": float(100 * (se / st - 1))}
+
+
+def camera_reloc_error(est: np.ndarray, seq_a, seq_b, poses_b: np.ndarray, frames) -> dict:
+    """Where the window's own cameras land in A's map: B's output poses ``poses_b`` (its prior frame) of the
+    window's frames (first, last) moved by the window's Sim(3) ``est`` (B -> A) against their true poses in
+    A's frame (``G_A0^-1 G_Bi``, A's scale undone); medians over the window's frames of the rotation (°) and
+    camera-centre (m) errors. Unlike :func:`reloc_error` (B's *first* camera, which the window may not
+    see), B's own drift between its first frame and the window does not enter; A's drift at the place
+    (the map's geometry) does."""
+    s = np.cbrt(np.linalg.det(est[:3, :3]))
+    R, t = est[:3, :3] / s, est[:3, 3]
+    sa = seq_a.meta["prior_scale"]
+    g0 = np.linalg.inv(seq_a.gt.cam_to_world[0])
+    rot, trans = [], []
+    for i in range(frames[0], frames[1] + 1):
+        true = g0 @ seq_b.gt.cam_to_world[i]
+        r_est = R @ poses_b[i][:3, :3]
+        c_est = s * R @ poses_b[i][:3, 3] + t
+        dR = r_est.T @ true[:3, :3]
+        rot.append(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+        trans.append(np.linalg.norm(c_est / sa - true[:3, 3]))
+    return {"rot_deg": float(np.median(rot)), "trans_m": float(np.median(trans))}
 
 
 def map_points(bank, map_ids) -> np.ndarray:
@@ -319,12 +345,17 @@ def main() -> None:
             if any(ok for _, ok in wins):  # A's map before and after B's recalled windows merged into it
                 merged = merge_quality(seqs[a], results[a], map_points(banks[a], maps_a), map_points(bank_b, maps_a),
                                        np.concatenate([clouds[a], clouds[b]]))
-            memo[(a, b)] = (metrics.cloud_overlap(clouds[a], clouds[b]), wins, best, top, merged)
-        return memo[(a, b)]
+            cams = [camera_reloc_error(np.asarray(w.transform, np.float64), seqs[a], seqs[b],
+                                       np.asarray(res_b.poses, np.float64), w.frames) for w, ok in wins if ok]
+            memo[(a, b)] = (metrics.cloud_overlap(clouds[a], clouds[b]), wins, best, top, merged, cams)
+        return memo[(a, b)][:5]
 
     def window_errors(a, b, wins):
         return [reloc_error(np.asarray(w.transform), true_sim3(seqs[a], seqs[b]), seqs[a].meta["prior_scale"])
                 for w, ok in wins if ok]
+
+    def camera_errors(a, b):
+        return memo[(a, b)][5]
 
     def show(a, b, kind):
         ov, wins, best, top, merged = pair_run(a, b)
@@ -336,7 +367,7 @@ def main() -> None:
               f"{e['scale_err_pct']:7.2f}")
         return ov, wins, errs, merged
 
-    recalled, false_recalls, reloc, merges = 0, 0, [], {}
+    recalled, false_recalls, reloc, cam_reloc, merges = 0, 0, [], [], {}
     for kind, pairs in (("revisit", revisits), ("distinct", distinct)):
         for a, b in pairs:
             ov, wins, errs, merged = show(a, b, kind)
@@ -344,6 +375,7 @@ def main() -> None:
             if kind == "revisit":
                 recalled += any(ok for _, ok in wins)
                 reloc += errs[:1]
+                cam_reloc += camera_errors(a, b)[:1]
                 if merged is not None:
                     merges[(a, b)] = merged
             else:
@@ -351,8 +383,13 @@ def main() -> None:
     med = lambda rows, k: float(np.median([r[k] for r in rows])) if rows else None  # noqa: E731
     figures |= {"revisits_recalled": recalled, "revisits_total": len(revisits), "false_recalls": false_recalls,
                 "distinct_total": len(distinct), "reloc_rot_deg_median": med(reloc, "rot_deg"),
-                "reloc_trans_m_median": med(reloc, "trans_m"), "reloc_scale_err_pct_median": med(reloc, "scale_err_pct")}
+                "reloc_trans_m_median": med(reloc, "trans_m"), "reloc_scale_err_pct_median": med(reloc, "scale_err_pct"),
+                "camera_reloc_rot_deg_median": med(cam_reloc, "rot_deg"),
+                "camera_reloc_trans_m_median": med(cam_reloc, "trans_m")}
     print(f"\nrevisits recalled {recalled}/{len(revisits)}, false recalls {false_recalls}/{len(distinct)}")
+    if cam_reloc:
+        print(f"relocalisation, median: B's first camera {med(reloc, 'rot_deg'):.2f}° / {med(reloc, 'trans_m'):.3f} m; "
+              f"the window's own cameras {med(cam_reloc, 'rot_deg'):.2f}° / {med(cam_reloc, 'trans_m'):.3f} m")
     if merges:
         print("\nmap update: A's stored map before / after B's recalled windows merged into it, against the "
               "ground truth of both visits (medians, m; A's alignment)\n")
@@ -375,7 +412,7 @@ def main() -> None:
         print(head)
         print("-" * len(head))
         win_ok = win_n = 0
-        errs_all, false_pairs, low_pairs, high_pairs, high_recalled, merged_all = [], 0, 0, 0, 0, []
+        errs_all, cams_all, false_pairs, low_pairs, high_pairs, high_recalled, merged_all = [], [], 0, 0, 0, 0, []
         for a, b in pairs:
             ov = metrics.cloud_overlap(clouds[a], clouds[b])
             kind = "revisit" if ov >= 0.3 else ("distinct" if ov < 0.1 else "partial")
@@ -386,6 +423,7 @@ def main() -> None:
                 win_ok += sum(ok for _, ok in wins)
                 win_n += len(wins)
                 errs_all += errs
+                cams_all += camera_errors(a, b)
                 if merged is not None:
                     merged_all.append(merged)
             elif kind == "distinct":
@@ -396,7 +434,9 @@ def main() -> None:
                     "false_recalls_overlap10": false_pairs, "pairs_overlap10": low_pairs,
                     "window_reloc_rot_deg_median": med(errs_all, "rot_deg"),
                     "window_reloc_trans_m_median": med(errs_all, "trans_m"),
-                    "window_reloc_scale_err_pct_median": med(errs_all, "scale_err_pct")}
+                    "window_reloc_scale_err_pct_median": med(errs_all, "scale_err_pct"),
+                    "window_camera_reloc_rot_deg_median": med(cams_all, "rot_deg"),
+                    "window_camera_reloc_trans_m_median": med(cams_all, "trans_m")}
         if win_n:
             print(f"\nwindows of the {high_pairs} pairs with >= 30 % overlap recalled: {win_ok}/{win_n} "
                   f"({100 * win_ok / win_n:.1f} %; pairs {high_recalled}/{high_pairs}); false recalls on the "
@@ -405,6 +445,8 @@ def main() -> None:
             print(f"relocalisation of the recalled windows, median: {med(errs_all, 'rot_deg'):.2f}° / "
                   f"{med(errs_all, 'trans_m'):.3f} m / {med(errs_all, 'scale_err_pct'):+.2f} % scale "
                   f"(|scale| {float(np.median([abs(r['scale_err_pct']) for r in errs_all])):.2f} %)")
+            print(f"... the windows' own cameras in A's map (median over windows of each window's median): "
+                  f"{med(cams_all, 'rot_deg'):.2f}° / {med(cams_all, 'trans_m'):.3f} m")
             figures["window_reloc_abs_scale_err_pct_median"] = float(np.median([abs(r["scale_err_pct"])
                                                                                for r in errs_all]))
         if merged_all:
