@@ -150,10 +150,12 @@ def _entry_from_points(points, colors, conf, valid, kf_desc, kf_valid, voxel_siz
     """Downsample to the bank's capacity and describe (see :func:`build_entry`)."""
     feats = jnp.concatenate([colors.astype(jnp.float32), conf[:, None]], axis=1)
     vox, vs = downsample_to_capacity(points, valid, feats, voxel_size, cfg.max_points)
-    if min_support > 0:  # voxels that few samples fell into: stray points, not surface (build_entry)
+    if not (isinstance(min_support, (int, float)) and min_support <= 0):  # may be traced (0: nothing dropped)
+        # voxels that few samples fell into: stray points, not surface (build_entry)
         med = jnp.nanmedian(jnp.where(vox.valid, vox.weight, jnp.nan))
         keep = vox.valid & (vox.weight >= min_support * med)
-        vox = vox.replace(points=jnp.where(keep[:, None], vox.points, 0.0), valid=keep)
+        on = jnp.asarray(min_support) > 0
+        vox = vox.replace(points=jnp.where(on & ~keep[:, None], 0.0, vox.points), valid=jnp.where(on, keep, vox.valid))
     normals = estimate_normals(vox.points, vox.valid, k=16, radius=cfg.normal_radius)
     return MapEntry(points=vox.points, normals=jnp.where(vox.valid[:, None], normals, 0.0),
                     conf=vox.features[:, 3], colors=jnp.clip(jnp.round(vox.features[:, :3]), 0, 255).astype(jnp.uint8),
@@ -178,8 +180,8 @@ def build_entry(cloud: SequenceCloud, kf_desc, kf_valid, cfg: MemoryConfig,
     the sequence's 3D keypoints (:func:`lift_keypoints`, same frame as ``cloud``) and (optional) its
     floor keypoints (:func:`cm3d.ops.keypoints.floor_features` on the same priors, as :class:`Keypoints`).
 
-    ``min_support`` (a share, 0 = keep all): voxels with fewer samples than this share of the median
-    voxel's are dropped: in a capacity-bound map a stray sample (a mover the mask missed, a grazing or
+    ``min_support`` (a share, 0 = keep all; may be traced): voxels with fewer samples than this share of the
+    median voxel's are dropped: in a capacity-bound map a stray sample (a mover the mask missed, a grazing or
     far pixel) weighs as much as a voxel of surface (docs/memory.md)."""
     vs = adaptive_voxel_size(cloud.points, cloud.valid, cfg.voxel_resolution)
     entry = _entry_from_points(cloud.points, cloud.colors, cloud.conf, cloud.valid, kf_desc, kf_valid, vs, cfg,

@@ -143,12 +143,16 @@ def sequence_query(bank: memory.MemoryBank, written, entry: memory.MapEntry, mem
     (``written``, in the sequence's frame: the sequence up to this window); the entry alone when
     ``written < 0``."""
     m = jnp.maximum(written, 0)
+    merged = jax.lax.cond(written >= 0,
+                          lambda b: memory.update_map(b, m, entry, jnp.eye(4, dtype=jnp.float32), mem_cfg,
+                                                      same_frame=True), lambda b: b, bank)
+    return _query_of(merged, written, entry)
 
-    def merged(entry):
-        b = memory.update_map(bank, m, entry, jnp.eye(4, dtype=jnp.float32), mem_cfg, same_frame=True)
-        return memory.stored_entry(b, m).replace(floor_keypoints=entry.floor_keypoints)
 
-    return jax.lax.cond(written >= 0, merged, lambda e: e, entry)
+def _query_of(merged: memory.MemoryBank, written, entry: memory.MapEntry) -> memory.MapEntry:
+    """:func:`sequence_query` from the bank after the merge (``merged``, any bank when ``written < 0``)."""
+    return jax.lax.cond(written >= 0, lambda: memory.stored_entry(merged, written).replace(
+        floor_keypoints=entry.floor_keypoints), lambda: entry)
 
 
 def memory_refinement(win: Window, lm_: Landmarks, ref0: trajectory.Refinement, obs: trajectory.Observations,
@@ -236,45 +240,103 @@ def photometric_decision(per, n_pair):
     return ok, err[0].astype(jnp.float32), err[1].astype(jnp.float32), p.astype(jnp.float32)
 
 
+@struct.dataclass
+class _Phases:
+    """The carry of :func:`recall_verify_update`'s two passes: what the pass stores (the window at
+    ``poses`` into map ``target`` by ``transform``, ``same_frame``; a new map when ``target < 0`` and
+    ``insert``; voxels under ``min_support`` dropped) into ``bank``, and what the first pass decided."""
+
+    bank: Any
+    map_id: Any
+    poses: Any
+    target: Any
+    transform: Any
+    same_frame: Any
+    insert: Any
+    min_support: Any
+    cursor: MemoryCursor
+    step: MemoryStep
+
+
+def _store(st: _Phases, win: Window, mem_cfg: memory.MemoryConfig, cfg: PipelineConfig):
+    """One pass's write: (bank, map written (-1 none), the window's entry)."""
+    entry = window_entry(win.replace(poses=st.poses), mem_cfg, cfg, st.min_support)
+
+    def merge(b):
+        return memory.update_map(b, jnp.maximum(st.target, 0), entry, st.transform, mem_cfg,
+                                 same_frame=st.same_frame), st.target
+
+    def other(b):
+        return jax.lax.cond(st.insert, lambda b: memory.insert_map(b, entry), lambda b: (b, -jnp.ones((), jnp.int32)),
+                            b)
+
+    bank, map_id = jax.lax.cond(st.target >= 0, merge, other, st.bank)
+    return bank, map_id.astype(jnp.int32), entry
+
+
 def recall_verify_update(bank: memory.MemoryBank, cursor: MemoryCursor, key, win: Window, lm_: Landmarks,
                          ref: trajectory.Refinement, poses, obs: trajectory.Observations,
                          mem_cfg: memory.MemoryConfig, cfg: PipelineConfig):
     """The memory's part of a window after its memory-free graph (``ref``, ``poses``): **identify** the
     window merged with its sequence's map (:func:`sequence_query`); **factor graph with memory**
     (:func:`memory_refinement`), used only when both the gate and the memory's test pass; **update**
-    the bank (the recalled map, else the sequence's own, else a new one). Returns (bank, cursor, MemoryStep)."""
-    entry0 = sequence_query(bank, cursor.written, window_entry(win.replace(poses=poses), mem_cfg, cfg), mem_cfg)
-    ident = memory.identify(memory.without_map(bank, cursor.written), entry0, mem_cfg, key)
-    hit = ident.map_id >= 0
-    new_map = hit & (ident.map_id != cursor.recalled)
-    use_map = jnp.where(new_map, ident.map_id, cursor.recalled).astype(jnp.int32)
-    use_T = jnp.where(new_map, ident.verification.transform, cursor.transform).astype(jnp.float32)
-    d_scene = trajectory.scene_scale(win.depth, win.static & win.valid[:, None, None])
-    surface = memory_surface(bank, use_map, use_T, d_scene)
-    first = obs.valid.reshape(lm_.obs_valid.shape)[:, 0]  # tracks that passed the prior check
-    pm, ok, A, matched, stat, thr = memory_refinement(win, lm_, ref, obs, first, surface, cfg, new_map)
-    used = (use_map >= 0) & ref.refined & ok
-    e_free = e_mem = p_photo = jnp.full((), jnp.nan, jnp.float32)
-    if cfg.memory_photometric:  # static: switched off, the warps are not computed at all
-        photo_ok, e_free, e_mem, p_photo = photometric_test(win, poses, pm)
-        used = used & photo_ok
-    poses = jnp.where(used, pm.astype(jnp.float32), poses)
-    use_T = (use_T @ A.astype(jnp.float32)).astype(jnp.float32)
-    entry = window_entry(win.replace(poses=poses), mem_cfg, cfg, cfg.map_min_support)
-    # else the sequence's own map, whose frame is the sequence's (identity: exact, no ICP noise)
-    target = jnp.where(use_map >= 0, use_map, cursor.written).astype(jnp.int32)
-    target_T = jnp.where(use_map >= 0, use_T, jnp.eye(4)).astype(jnp.float32)
-    known = target >= 0
+    the bank (the recalled map, else the sequence's own, else a new one). Returns (bank, cursor, MemoryStep).
 
-    def merge(b):
-        return memory.update_map(b, jnp.maximum(target, 0), entry, target_T, mem_cfg, same_frame=use_map < 0), target
+    The window becomes an entry merged into a map twice (the query: the memory-free window into the
+    sequence's own map by the identity; the update: the final window into its target, else a new map).
+    Both writes are the one body (:func:`_store`) of a two-pass ``fori_loop`` whose first pass also
+    decides (identify, graph with memory, tests), so the compiled program holds the entry and the merge
+    once: each copy was ~6 % of the sequence program's instructions, and a stored program loads in time
+    proportional to them (docs/pipeline.md, stop 65). Bitwise the results of the two writes inlined."""
+    top_k = mem_cfg.top_k
+    f32 = jnp.float32
 
-    bank, map_id = jax.lax.cond(known, merge, lambda b: memory.insert_map(b, entry), bank)
-    created = ~known & (map_id >= 0)
-    cursor = MemoryCursor(recalled=use_map, transform=use_T,
-                          written=jnp.where(created, map_id, cursor.written).astype(jnp.int32))
-    report = recall_report(ident, map_id, jnp.where(hit, ident.verification.transform, jnp.eye(4)), created,
-                           target_T)
-    return bank, cursor, MemoryStep(poses=poses, report=report, landmarks=jnp.sum(matched).astype(jnp.int32),
-                                    used=used, stat=stat.astype(jnp.float32), threshold=thr.astype(jnp.float32),
-                                    photo_free=e_free, photo_memory=e_mem, photo_p=p_photo)
+    def decide(st: _Phases, merged, entry0):
+        query = _query_of(merged, cursor.written, entry0)  # sequence_query's, merged by the first pass
+        ident = memory.identify(memory.without_map(bank, cursor.written), query, mem_cfg, key)
+        hit = ident.map_id >= 0
+        new_map = hit & (ident.map_id != cursor.recalled)
+        use_map = jnp.where(new_map, ident.map_id, cursor.recalled).astype(jnp.int32)
+        use_T = jnp.where(new_map, ident.verification.transform, cursor.transform).astype(f32)
+        d_scene = trajectory.scene_scale(win.depth, win.static & win.valid[:, None, None])
+        surface = memory_surface(bank, use_map, use_T, d_scene)
+        first = obs.valid.reshape(lm_.obs_valid.shape)[:, 0]  # tracks that passed the prior check
+        pm, ok, A, matched, stat, thr = memory_refinement(win, lm_, ref, obs, first, surface, cfg, new_map)
+        used = (use_map >= 0) & ref.refined & ok
+        e_free = e_mem = p_photo = jnp.full((), jnp.nan, f32)
+        if cfg.memory_photometric:  # static: switched off, the warps are not computed at all
+            photo_ok, e_free, e_mem, p_photo = photometric_test(win, poses, pm)
+            used = used & photo_ok
+        final = jnp.where(used, pm.astype(f32), poses)
+        use_T = (use_T @ A.astype(f32)).astype(f32)
+        # else the sequence's own map, whose frame is the sequence's (identity: exact, no ICP noise)
+        target = jnp.where(use_map >= 0, use_map, cursor.written).astype(jnp.int32)
+        target_T = jnp.where(use_map >= 0, use_T, jnp.eye(4)).astype(f32)
+        report = recall_report(ident, -jnp.ones((), jnp.int32), jnp.where(hit, ident.verification.transform,
+                                                                           jnp.eye(4)), False, target_T)
+        step = MemoryStep(poses=final, report=report, landmarks=jnp.sum(matched).astype(jnp.int32), used=used,
+                          stat=stat.astype(f32), threshold=thr.astype(f32), photo_free=e_free, photo_memory=e_mem,
+                          photo_p=p_photo)
+        return st.replace(poses=final, target=target, transform=target_T, same_frame=use_map < 0,
+                          insert=jnp.ones((), bool), min_support=jnp.asarray(cfg.map_min_support, f32),
+                          cursor=MemoryCursor(recalled=use_map, transform=use_T, written=cursor.written), step=step)
+
+    def body(k, st: _Phases):
+        merged, map_id, entry = _store(st, win, mem_cfg, cfg)
+        return jax.lax.cond(k == 0, lambda: decide(st, merged, entry),
+                            lambda: st.replace(bank=merged, map_id=map_id))
+
+    empty = MemoryStep.off(poses.astype(f32), top_k)
+    empty = empty.replace(report=empty.report.replace(transform=jnp.eye(4, dtype=f32)),
+                          photo_free=jnp.full((), jnp.nan, f32), photo_memory=jnp.full((), jnp.nan, f32),
+                          photo_p=jnp.full((), jnp.nan, f32))
+    st = _Phases(bank=bank, map_id=-jnp.ones((), jnp.int32), poses=poses.astype(f32),
+                 target=jnp.asarray(cursor.written, jnp.int32), transform=jnp.eye(4, dtype=f32),
+                 same_frame=jnp.ones((), bool), insert=jnp.zeros((), bool), min_support=jnp.zeros((), f32),
+                 cursor=cursor, step=empty)
+    st = jax.lax.fori_loop(0, 2, body, st)
+    known = st.target >= 0
+    created = ~known & (st.map_id >= 0)
+    cur = st.cursor.replace(written=jnp.where(created, st.map_id, cursor.written).astype(jnp.int32))
+    report = st.step.report.replace(map_id=st.map_id, created=created)
+    return st.bank, cur, st.step.replace(report=report)
