@@ -161,6 +161,28 @@ def test_memory_without_a_recall_leaves_the_sequence_as_memory_off(visits, scann
     assert _ate(visits[1], own.chained) <= _ate(visits[1], alone.poses) + 1e-9
 
 
+def test_pieces_prepared_while_the_program_loads_give_the_same_run(visits):
+    """While the pieces' program is still loading (``_run_pieces``'s ``loader`` alive) the host prepares the
+    next pieces instead of waiting, and dispatches them once it has loaded (or at the end): the same state
+    and outputs, bitwise, as dispatching each piece as soon as it is prepared."""
+    import sys
+
+    run_mod = sys.modules["cm3d.pipeline.run"]
+    cfg = pipeline.small_config()
+
+    class Loader:  # a prefetch thread that is still loading (True) or done (False)
+        def __init__(self, alive):
+            self.alive = alive
+
+        def is_alive(self):
+            return self.alive
+
+    runs = [run_mod._run_pieces(visits[1], cfg, None, None, None, None, Loader(alive))[:2] for alive in (False, True)]
+    assert len(runs[0][1].valid) > cfg.keyframe_interval  # several pieces: all held back, then flushed
+    for a, b in zip(jax.tree.leaves(runs[0]), jax.tree.leaves(runs[1])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def test_rescale_window_undoes_a_shrunk_window():
     rng = np.random.default_rng(0)
     init = np.tile(np.eye(4, dtype=np.float32), (5, 1, 1))
@@ -315,3 +337,11 @@ def test_map_entry_drops_voxels_with_little_support():
     assert int(kept.point_valid.sum()) == int(np.sum(~sparse))
     z = np.asarray(kept.points)[np.asarray(kept.point_valid), 2]
     assert np.all(z > 0.4)  # no stray voxel left, the wall's kept
+    # a traced share (the pipeline's two-pass write: 0 for the query, the share for the stored map) gives the
+    # entries of the static ones, bitwise
+    traced = jax.jit(memory.build_entry, static_argnames="cfg")
+    for share in (0.0, 0.2):
+        static = build(cloud, kf, jnp.zeros(2, bool), cfg, min_support=share)
+        dyn = traced(cloud, kf, jnp.zeros(2, bool), cfg, min_support=jnp.float32(share))
+        for a, b in zip(jax.tree.leaves(static), jax.tree.leaves(dyn)):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

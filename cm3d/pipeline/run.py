@@ -318,28 +318,40 @@ def _prefetch(seq, cfg: PipelineConfig, state, bank):
     return t
 
 
-def _run_pieces(seq, cfg: PipelineConfig, state, bank, progress, masks: MaskStream | None = None):
+def _run_pieces(seq, cfg: PipelineConfig, state, bank, progress, masks: MaskStream | None = None, loader=None):
     """The back end over one sequence, a piece of ``keyframe_interval`` frames at a time: while the
     device runs piece k (asynchronous dispatch), the host prepares piece k+1 (and ``masks``, when
-    given, refines piece k-1's masks in its thread). ``state``: the previous sequence's (None: a fresh
-    one around ``bank``). Returns (state, NumPy StepOutputs and Inputs of the padded sequence, the
-    stream of refined masks: ``masks``, or its replacement when the pieces had to run again)."""
+    given, refines piece k-1's masks in its thread); while the pieces' program is still loading
+    (``loader``, the :func:`_prefetch` thread, started here when None), the host prepares the next
+    pieces instead of waiting for it (the load runs on one core). ``state``: the previous sequence's
+    (None: a fresh one around ``bank``). Returns (state, NumPy StepOutputs and Inputs of the padded
+    sequence, the stream of refined masks: ``masks``, or its replacement when the pieces had to run again)."""
     outs, hosts, firsts, start = [], [], [], None
-    _prefetch(seq, cfg, state, bank)
+    loader = _prefetch(seq, cfg, state, bank) if loader is None else loader
+
+    def dispatch(pending):
+        nonlocal state, start
+        for first, piece in pending:
+            if state is None:
+                state = initial_state(piece, cfg, bank)
+            elif state.window.depth.shape[1:] != piece.frame.depth.shape[1:]:
+                state = initial_state(piece, cfg, state.bank)  # another image size: new buffers, same bank
+            start = state if start is None else start
+            x = jax.tree.map(jnp.asarray, piece)
+            state, out = programs.call("run_frames", run_frames, {"cfg": cfg}, state, x, np.bool_(first == 0))
+            outs.append(out)
+            hosts.append(piece)
+            firsts.append(first)
+            if masks is not None:
+                masks.add(first, piece, out.mask)
+
+    pending = []
     for first, piece in prepare_chunks(seq, cfg, progress=progress):
-        piece = _without_hole_features(piece)
-        if state is None:
-            state = initial_state(piece, cfg, bank)
-        elif state.window.depth.shape[1:] != piece.frame.depth.shape[1:]:
-            state = initial_state(piece, cfg, state.bank)  # another image size: new buffers, same bank
-        start = state if start is None else start
-        x = jax.tree.map(jnp.asarray, piece)
-        state, out = programs.call("run_frames", run_frames, {"cfg": cfg}, state, x, np.bool_(first == 0))
-        outs.append(out)
-        hosts.append(piece)
-        firsts.append(first)
-        if masks is not None:
-            masks.add(first, piece, out.mask)
+        pending.append((first, _without_hole_features(piece)))
+        if loader is None or not loader.is_alive():
+            dispatch(pending)
+            pending = []
+    dispatch(pending)
     try:
         jax.block_until_ready((state, outs))
     except jax.errors.JaxRuntimeError as err:
@@ -387,6 +399,7 @@ def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBa
             source = str(seq)
             seq = load_input(seq)
         quality.check_runnable(seq, source)
+        loader = _prefetch(seq, cfg, state, bank)  # the programs load while the input is checked and prepared
         # the front end's hole filling in a thread while the input is assessed (both host work that
         # releases the GIL; a degenerate input's filled copy is dropped)
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="cm3d-holes") as pool:
@@ -399,7 +412,7 @@ def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBa
             continue
         cb = None if progress is None else (lambda d, n, i=i: progress(f"visit {i}: flow", d, n))
         stream = MaskStream(seq, cfg) if cfg.refine_masks else None
-        state, out, host_inputs, stream = _run_pieces(filled.result(), cfg, state, bank, cb, stream)
+        state, out, host_inputs, stream = _run_pieces(filled.result(), cfg, state, bank, cb, stream, loader)
         if progress is not None:
             progress(f"visit {i}: back end", 1, 1)
         res = collect(out, seq, cfg)
