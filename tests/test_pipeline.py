@@ -177,7 +177,8 @@ def test_pieces_prepared_while_the_program_loads_give_the_same_run(visits):
         def is_alive(self):
             return self.alive
 
-    runs = [run_mod._run_pieces(visits[1], cfg, None, None, None, None, Loader(alive))[:2] for alive in (False, True)]
+    runs = [run_mod._run_pieces(visits[1], cfg, None, None, None, None, Loader(alive))[:2]
+            for alive in (False, True)]
     assert len(runs[0][1].valid) > cfg.keyframe_interval  # several pieces: all held back, then flushed
     for a, b in zip(jax.tree.leaves(runs[0]), jax.tree.leaves(runs[1])):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
