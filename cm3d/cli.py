@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -435,5 +436,20 @@ def main(argv: list[str] | None = None) -> int:
     return rc
 
 
+def finish(rc: int):
+    """Leave the process with ``rc`` once every output is written (``main`` joins its writer threads and
+    closes its files): flush the standard streams and exit without tearing the interpreter down, which
+    spends ~0.6 s freeing the compiled programs and the XLA client after a ``cm3d run`` (measured on the
+    kitchen's 30 frames: 0.75-1.5 s from the last output to the process's end, 0.2 s with this)."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(rc)
+
+
+def entry() -> None:
+    """The ``cm3d`` console script: :func:`main`, then :func:`finish`."""
+    finish(main())
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

@@ -115,8 +115,9 @@ res = {"import": t_import, "load": T["load"], "prepare": T["prepare"], "compile"
        "device": T["pieces"] - T["prepare"] - T["compile_pieces"], "outputs": T["outputs"] - T["compile_outputs"]}
 res["other"] = wall - sum(v for k, v in res.items() if k != "import")
 res["prefetch"] = T["prefetch"]
-json.dump(res, open(sys.argv[1], "w"))
-sys.exit(rc)
+with open(sys.argv[1], "w") as f:
+    json.dump(res, f)
+cli.finish(rc)  # as the console script ends
 """
 
 

@@ -136,6 +136,20 @@ def test_import_cm3d_is_light():
     assert out.stdout.strip() == "[]"
 
 
+def test_console_script_ends_without_teardown_yet_keeps_its_output_and_code(tmp_path):
+    """``python -m cm3d.cli`` ends as the ``cm3d`` script does (``cli.finish``: ``os._exit`` after the
+    streams are flushed): its files are written, its piped stdout arrives and its exit code is main's."""
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", "cm3d.cli", "generate", "--out", str(tmp_path), *args],
+                              capture_output=True, text=True)
+
+    ok = run("--visits", "1", "--frames", "2", "--height", "16", "--width", "16")
+    assert ok.returncode == 0 and str(tmp_path) in ok.stdout, ok.stderr
+    assert len(list(tmp_path.glob("*.npz"))) == 1
+    bad = run("--level", "extreme")
+    assert bad.returncode == 2 and "level" in bad.stderr
+
+
 def test_console_script_help():
     out = subprocess.run([sys.executable, "-m", "cm3d.cli", "--help"], capture_output=True, text=True)
     assert out.returncode == 0 and "generate" in out.stdout and "eval" in out.stdout
