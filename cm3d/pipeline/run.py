@@ -399,12 +399,13 @@ def run(sequences, cfg: PipelineConfig = PipelineConfig(), bank: memory.MemoryBa
             source = str(seq)
             seq = load_input(seq)
         quality.check_runnable(seq, source)
-        loader = _prefetch(seq, cfg, state, bank)  # the programs load while the input is checked and prepared
         # the front end's hole filling in a thread while the input is assessed (both host work that
-        # releases the GIL; a degenerate input's filled copy is dropped)
+        # releases the GIL; a degenerate input's filled copy is dropped); the programs start loading once
+        # the input is known to need them, while the holes are filled and the pieces prepared
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="cm3d-holes") as pool:
             filled = pool.submit(quality.fill_depth_holes, seq)
             q = quality.assess_input(seq) if checks else None
+            loader = None if q is not None and q.degenerate else _prefetch(seq, cfg, state, bank)
         if q is not None and q.degenerate:
             results.append(prior_result(seq, q))
             if observe is not None:
