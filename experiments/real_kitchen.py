@@ -164,12 +164,16 @@ def true_sim3(seq_a, seq_b) -> np.ndarray:
     return out
 
 
+def rotation_deg(R: np.ndarray) -> float:
+    """The angle (°) of a rotation matrix."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+
+
 def reloc_error(est: np.ndarray, true: np.ndarray, scale_a: float) -> dict:
     """Rotation (°), translation of B's first camera (m, A's scale undone) and scale (%) errors."""
     se, st = np.cbrt(np.linalg.det(est[:3, :3])), np.cbrt(np.linalg.det(true[:3, :3]))
-    dR = (est[:3, :3] / se).T @ (true[:3, :3] / st)
-    rot = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
-    return {"rot_deg": rot, "trans_m": float(np.linalg.norm(est[:3, 3] - true[:3, 3]) / scale_a),
+    return {"rot_deg": rotation_deg((est[:3, :3] / se).T @ (true[:3, :3] / st)),
+            "trans_m": float(np.linalg.norm(est[:3, 3] - true[:3, 3]) / scale_a),
             "scale_err_pct": float(100 * (se / st - 1))}
 
 
@@ -189,8 +193,7 @@ def camera_reloc_error(est: np.ndarray, seq_a, seq_b, poses_b: np.ndarray, frame
         true = g0 @ seq_b.gt.cam_to_world[i]
         r_est = R @ poses_b[i][:3, :3]
         c_est = s * R @ poses_b[i][:3, 3] + t
-        dR = r_est.T @ true[:3, :3]
-        rot.append(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+        rot.append(rotation_deg(r_est.T @ true[:3, :3]))
         trans.append(np.linalg.norm(c_est / sa - true[:3, 3]))
     return {"rot_deg": float(np.median(rot)), "trans_m": float(np.median(trans))}
 
@@ -348,34 +351,31 @@ def main() -> None:
             cams = [camera_reloc_error(np.asarray(w.transform, np.float64), seqs[a], seqs[b],
                                        np.asarray(res_b.poses, np.float64), w.frames) for w, ok in wins if ok]
             memo[(a, b)] = (metrics.cloud_overlap(clouds[a], clouds[b]), wins, best, top, merged, cams)
-        return memo[(a, b)][:5]
+        return memo[(a, b)]
 
     def window_errors(a, b, wins):
         return [reloc_error(np.asarray(w.transform), true_sim3(seqs[a], seqs[b]), seqs[a].meta["prior_scale"])
                 for w, ok in wins if ok]
 
-    def camera_errors(a, b):
-        return memo[(a, b)][5]
-
     def show(a, b, kind):
-        ov, wins, best, top, merged = pair_run(a, b)
+        ov, wins, best, top, merged, cams = pair_run(a, b)
         errs = window_errors(a, b, wins)
         e = errs[0] if errs else {"rot_deg": float("nan"), "trans_m": float("nan"), "scale_err_pct": float("nan")}
         n_ok = sum(ok for _, ok in wins)
         print(f"{a:4d}/{b:<4d}  {kind:>8s} {100 * ov:6.1f}% {('yes' if n_ok else 'no'):>8s} {n_ok:3d}/{len(wins):<3d} "
               f"{top:>9s} {max(best.keypoint_inliers or [0]):7d} {e['rot_deg']:6.2f} {e['trans_m']:7.3f} "
               f"{e['scale_err_pct']:7.2f}")
-        return ov, wins, errs, merged
+        return ov, wins, errs, merged, cams
 
     recalled, false_recalls, reloc, cam_reloc, merges = 0, 0, [], [], {}
     for kind, pairs in (("revisit", revisits), ("distinct", distinct)):
         for a, b in pairs:
-            ov, wins, errs, merged = show(a, b, kind)
+            ov, wins, errs, merged, cams = show(a, b, kind)
             figures[f"overlap_{a}_{b}"] = ov
             if kind == "revisit":
                 recalled += any(ok for _, ok in wins)
                 reloc += errs[:1]
-                cam_reloc += camera_errors(a, b)[:1]
+                cam_reloc += cams[:1]
                 if merged is not None:
                     merges[(a, b)] = merged
             else:
@@ -383,12 +383,14 @@ def main() -> None:
     med = lambda rows, k: float(np.median([r[k] for r in rows])) if rows else None  # noqa: E731
     figures |= {"revisits_recalled": recalled, "revisits_total": len(revisits), "false_recalls": false_recalls,
                 "distinct_total": len(distinct), "reloc_rot_deg_median": med(reloc, "rot_deg"),
-                "reloc_trans_m_median": med(reloc, "trans_m"), "reloc_scale_err_pct_median": med(reloc, "scale_err_pct"),
+                "reloc_trans_m_median": med(reloc, "trans_m"),
+                "reloc_scale_err_pct_median": med(reloc, "scale_err_pct"),
                 "camera_reloc_rot_deg_median": med(cam_reloc, "rot_deg"),
                 "camera_reloc_trans_m_median": med(cam_reloc, "trans_m")}
     print(f"\nrevisits recalled {recalled}/{len(revisits)}, false recalls {false_recalls}/{len(distinct)}")
     if cam_reloc:
-        print(f"relocalisation, median: B's first camera {med(reloc, 'rot_deg'):.2f}° / {med(reloc, 'trans_m'):.3f} m; "
+        print(f"relocalisation, median: B's first camera {med(reloc, 'rot_deg'):.2f}° / "
+              f"{med(reloc, 'trans_m'):.3f} m; "
               f"the window's own cameras {med(cam_reloc, 'rot_deg'):.2f}° / {med(cam_reloc, 'trans_m'):.3f} m")
     if merges:
         print("\nmap update: A's stored map before / after B's recalled windows merged into it, against the "
@@ -416,14 +418,14 @@ def main() -> None:
         for a, b in pairs:
             ov = metrics.cloud_overlap(clouds[a], clouds[b])
             kind = "revisit" if ov >= 0.3 else ("distinct" if ov < 0.1 else "partial")
-            ov, wins, errs, merged = show(a, b, kind)
+            ov, wins, errs, merged, cams = show(a, b, kind)
             if kind == "revisit":
                 high_pairs += 1
                 high_recalled += any(ok for _, ok in wins)
                 win_ok += sum(ok for _, ok in wins)
                 win_n += len(wins)
                 errs_all += errs
-                cams_all += camera_errors(a, b)
+                cams_all += cams
                 if merged is not None:
                     merged_all.append(merged)
             elif kind == "distinct":

@@ -326,14 +326,10 @@ def recall_verify_update(bank: memory.MemoryBank, cursor: MemoryCursor, key, win
         return jax.lax.cond(k == 0, lambda: decide(st, merged, entry),
                             lambda: st.replace(bank=merged, map_id=map_id))
 
-    empty = MemoryStep.off(poses.astype(f32), top_k)
-    empty = empty.replace(report=empty.report.replace(transform=jnp.eye(4, dtype=f32)),
-                          photo_free=jnp.full((), jnp.nan, f32), photo_memory=jnp.full((), jnp.nan, f32),
-                          photo_p=jnp.full((), jnp.nan, f32))
     st = _Phases(bank=bank, map_id=-jnp.ones((), jnp.int32), poses=poses.astype(f32),
                  target=jnp.asarray(cursor.written, jnp.int32), transform=jnp.eye(4, dtype=f32),
                  same_frame=jnp.ones((), bool), insert=jnp.zeros((), bool), min_support=jnp.zeros((), f32),
-                 cursor=cursor, step=empty)
+                 cursor=cursor, step=MemoryStep.off(poses.astype(f32), top_k))  # the first pass sets step
     st = jax.lax.fori_loop(0, 2, body, st)
     known = st.target >= 0
     created = ~known & (st.map_id >= 0)
